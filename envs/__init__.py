@@ -1,0 +1,62 @@
+"""The DISCOVERSE manipulation suite rebuilt in MuJoCo MJX.
+
+    import envs
+    env = envs.make("stack_block", num_envs=256, render=True, image_size=(64, 64))
+    state = env.reset(keys)          # keys: [256, 2] PRNG keys
+    state = env.step(state, actions) # actions: [256, 7] joint-position targets
+"""
+
+from __future__ import annotations
+
+from envs.batched import BatchedEnv
+from envs.env import EnvConfig, TabletopEnv
+from envs.tasks.block_bridge_place import BlockBridgePlace
+from envs.tasks.block_place import BlockPlace
+from envs.tasks.coffeecup_place import CoffeecupPlace
+from envs.tasks.cuplid_cover import CuplidCover
+from envs.tasks.drawer_open import DrawerOpen
+from envs.tasks.jujube_pick import JujubePick
+from envs.tasks.jujube_place import JujubePlace
+from envs.tasks.kiwi_place import KiwiPlace
+from envs.tasks.laptop_close import LaptopClose
+from envs.tasks.mouse_push import MousePush
+from envs.tasks.stack_block import StackBlock
+
+TASKS: dict[str, type[TabletopEnv]] = {
+    cls.name: cls for cls in (
+        JujubePick, KiwiPlace, StackBlock, CoffeecupPlace, BlockBridgePlace, DrawerOpen,
+        LaptopClose, CuplidCover, BlockPlace, JujubePlace, MousePush)
+}
+
+TASKSETS: dict[str, tuple[str, ...]] = {
+    # The paper's table order.
+    "discoverse7": ("jujube_pick", "kiwi_place", "stack_block", "coffeecup_place",
+                    "block_bridge_place", "drawer_open", "laptop_close"),
+    "discoverse_fewshot4": ("cuplid_cover", "block_place", "jujube_place", "mouse_push"),
+}
+
+
+def task_class(name: str) -> type[TabletopEnv]:
+  if name not in TASKS:
+    raise ValueError(f"unknown task {name!r}; valid tasks: {', '.join(TASKS)}")
+  return TASKS[name]
+
+
+def taskset(name: str) -> tuple[str, ...]:
+  """Task names of a taskset; a single task name is accepted as a one-task set."""
+  if name in TASKSETS:
+    return TASKSETS[name]
+  if name in TASKS:
+    return (name,)
+  raise ValueError(
+      f"unknown taskset {name!r}; valid tasksets: {', '.join(TASKSETS)} "
+      f"(or one task: {', '.join(TASKS)})")
+
+
+def make(name: str, num_envs: int = 1, render: bool = False, image_size=(64, 64),
+         impl: str = "warp", **config) -> BatchedEnv:
+  """A batch of `num_envs` environments of task `name`."""
+  if num_envs < 1:
+    raise ValueError(f"num_envs must be >= 1, got {num_envs}")
+  env = task_class(name)(EnvConfig(impl=impl, num_envs=num_envs, **config))
+  return BatchedEnv(env, num_envs, render=render, image_size=image_size)

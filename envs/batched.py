@@ -1,0 +1,77 @@
+"""Batched environments: Brax's vmap and episode-limit wrappers, plus batch rendering.
+
+MJX's Warp renderer needs the batch size when its context is made, so images
+are rendered here, on the whole batch, after the vmapped physics step.
+"""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+from brax.envs.wrappers.training import EpisodeWrapper, VmapWrapper
+from mujoco import mjx
+
+from envs.env import TabletopEnv
+
+CAMERAS = ("side", "wrist")
+
+
+class BatchedEnv:
+  """`num_envs` copies of a task: reset(keys[B]) and step(state, actions[B, 7]).
+
+  With `render=True`, obs also holds `side_rgb` and `wrist_rgb` (uint8,
+  [B, H, W, 3]) from `mjx.render`; otherwise no image is made (state-only mode).
+  """
+
+  def __init__(self, env: TabletopEnv, num_envs: int, render: bool = False, image_size=(64, 64)):
+    self.env = env
+    self.num_envs = num_envs
+    self.render = render
+    self.image_size = tuple(image_size)
+    self._env = VmapWrapper(EpisodeWrapper(env, env.episode_length, action_repeat=1))
+    self._ctx = None
+    if render:
+      if env.config.impl != "warp":
+        raise ValueError("rendering needs the Warp implementation (EnvConfig(impl='warp'))")
+      m = env.mj_model
+      self._cam_ids = [m.camera(c).id for c in CAMERAS]
+      w, h = self.image_size
+      self._ctx = mjx.create_render_context(
+          m, nworld=num_envs, cam_res=(w, h), use_textures=False, use_shadows=False,
+          render_rgb=[True] * m.ncam, render_depth=[False] * m.ncam)
+
+  @property
+  def episode_length(self) -> int:
+    return self.env.episode_length
+
+  def reset(self, keys: jax.Array):
+    if keys.shape[0] != self.num_envs:
+      raise ValueError(f"got {keys.shape[0]} reset keys for {self.num_envs} environments")
+    return self._with_images(self._env.reset(keys))
+
+  def step(self, state, actions: jax.Array):
+    if actions.shape != (self.num_envs, self.env.action_size):
+      raise ValueError(
+          f"{self.env.name}: actions have shape {actions.shape}, expected "
+          f"({self.num_envs}, {self.env.action_size})")
+    if self.render:  # the per-env step knows nothing of images: drop them, render anew
+      state = state.replace(obs={k: v for k, v in state.obs.items() if not k.endswith("_rgb")})
+    return self._with_images(self._env.step(state, actions))
+
+  def _with_images(self, state):
+    if not self.render:
+      return state
+    mx = self.env.mjx_model
+    ctx = self._ctx.pytree()
+
+    def one(d):
+      d = mjx.refit_bvh(mx, d, ctx)
+      rgb, _, d = mjx.render(mx, d, ctx)
+      return rgb, d
+
+    rgb, data = jax.vmap(one)(state.pipeline_state)
+    obs = dict(state.obs)
+    for cam, cid in zip(CAMERAS, self._cam_ids):
+      img = mjx.get_rgb(ctx, cid, rgb)
+      obs[f"{cam}_rgb"] = (jnp.clip(img, 0.0, 1.0) * 255).astype(jnp.uint8)
+    return state.replace(pipeline_state=data, obs=obs)

@@ -1,0 +1,200 @@
+"""The tabletop environment: Brax's Env/State API over an MJX model.
+
+One class holds what every task shares (robot, control at 20 Hz over physics
+substeps, observations, NaN handling); a task subclasses it with its objects,
+reset sampler, success check and scripted expert plan. Everything here acts
+on a single environment and is pure, so batching is `jax.vmap` (see
+`envs.batched`), as in Brax and MuJoCo Playground.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import Sequence
+
+import jax
+import jax.numpy as jnp
+import mujoco
+import numpy as np
+from brax.envs.base import Env, State
+from mujoco import mjx
+
+from envs import robot, scene
+
+
+@dataclasses.dataclass(frozen=True)
+class EnvConfig:
+  """Physics and observation settings shared by all tasks."""
+  impl: str = "warp"  # 'warp' (CPU and GPU) or 'jax' (fallback)
+  control_dt: float = scene.CONTROL_DT
+  physics_timestep: float = scene.PHYSICS_TIMESTEP
+  num_envs: int = 1  # contact buffers are sized for this many worlds
+  contacts_per_env: int = 48
+  constraints_per_env: int = 256
+
+
+@dataclasses.dataclass(frozen=True)
+class Phase:
+  """One state of a scripted expert: a joint-space goal latched on entry.
+
+  goal: fn(env, data) -> 7-D joint target (arm + finger opening), read from
+    privileged object poses when the phase starts.
+  min_steps: control steps to stay at least (lets the gripper close or open).
+  tol: arm joint error (rad) under which the goal counts as reached.
+  """
+  goal: callable
+  min_steps: int = 0
+  tol: float = 0.01
+
+
+class TabletopEnv(Env):
+  """Base class of the 11 DISCOVERSE-style tasks."""
+
+  name: str = ""
+  abbr: str = ""
+  time_limit_s: float = 10.0
+  objects: Sequence[str] = ()  # free bodies, in privileged-state order
+  extra_joints: Sequence[str] = ()  # articulated objects' joints (drawer, lid)
+
+  def __init__(self, config: EnvConfig = EnvConfig()):
+    self.config = config
+    xml = scene.model_xml(self.name, self.objects_xml(), self.fixed_xml(), self.contact_xml())
+    m = scene.compile_model(xml)
+    m.opt.timestep = config.physics_timestep
+    self.mj_model = m
+    self.mjx_model = mjx.put_model(m, impl=config.impl)
+    self.n_substeps = int(round(config.control_dt / config.physics_timestep))
+    self._body = {m.body(i).name: i for i in range(m.nbody)}
+    self._site = {m.site(i).name: i for i in range(m.nsite)}
+    self._qadr = {m.joint(i).name: int(m.jnt_qposadr[i]) for i in range(m.njnt)}
+    self._vadr = {m.joint(i).name: int(m.jnt_dofadr[i]) for i in range(m.njnt)}
+
+  # ---- what a task provides -------------------------------------------------
+  def objects_xml(self) -> str:
+    raise NotImplementedError(f"{type(self).__name__} defines no objects")
+
+  def fixed_xml(self) -> str:
+    return ""
+
+  def contact_xml(self) -> str:
+    return ""
+
+  def sample_objects(self, key, qpos):
+    """Return qpos with the objects placed by the task's randomisation."""
+    return qpos
+
+  def success(self, data) -> jax.Array:
+    raise NotImplementedError
+
+  def expert_plan(self) -> Sequence[Phase]:
+    raise NotImplementedError
+
+  # ---- helpers for tasks ----------------------------------------------------
+  def pos(self, data, body):
+    return data.xpos[self._body[body]]
+
+  def mat(self, data, body):
+    return data.xmat[self._body[body]]
+
+  def qpos_of(self, data, joint):
+    return data.qpos[self._qadr[joint]]
+
+  def grasp_pos(self, data):
+    return data.site_xpos[self._site["grasp"]]
+
+  def place(self, qpos, body, xyz, yaw=0.0):
+    """Set a free body's pose in qpos (position and yaw about z)."""
+    a = self._qadr[body]
+    quat = jnp.array([jnp.cos(yaw / 2), 0.0, 0.0, jnp.sin(yaw / 2)])
+    return qpos.at[a:a + 3].set(jnp.asarray(xyz)).at[a + 3:a + 7].set(quat)
+
+  def nominal(self, body):
+    """A free body's position as written in the MJCF."""
+    return jnp.asarray(self.mj_model.body(body).pos)
+
+  # ---- Brax Env API ---------------------------------------------------------
+  @property
+  def episode_length(self) -> int:
+    return int(round(self.time_limit_s / self.config.control_dt))
+
+  @property
+  def observation_size(self):
+    return {"joint_pos": robot.ACTION_DIM, "object_state": 7 * len(self.objects) + len(self.extra_joints)}
+
+  @property
+  def action_size(self) -> int:
+    return robot.ACTION_DIM
+
+  @property
+  def backend(self) -> str:
+    return f"mjx-{self.config.impl}"
+
+  def _make_data(self):
+    c = self.config
+    if c.impl == "warp":
+      return mjx.make_data(self.mj_model, impl="warp",
+                           naconmax=c.num_envs * c.contacts_per_env,
+                           njmax=c.constraints_per_env)
+    return mjx.make_data(self.mjx_model)
+
+  def reset(self, rng: jax.Array) -> State:
+    data = self._make_data()
+    qpos = jnp.asarray(self.mj_model.qpos0, jnp.float32)
+    qpos = qpos.at[:robot.ARM_DOF].set(robot.HOME_QPOS[:robot.ARM_DOF])
+    qpos = qpos.at[robot.ARM_DOF:robot.ARM_DOF + 2].set(robot.HOME_QPOS[robot.ARM_DOF])
+    qpos = self.sample_objects(rng, qpos)
+    data = data.replace(qpos=qpos, ctrl=robot.action_to_ctrl(jnp.asarray(robot.HOME_QPOS, jnp.float32)))
+    data = mjx.forward(self.mjx_model, data)
+    zero = jnp.zeros(())
+    metrics = {"success": zero, "nan": zero}
+    info = {"first_success_step": jnp.full((), -1, jnp.int32), "t": jnp.zeros((), jnp.int32)}
+    return State(pipeline_state=data, obs=self.observation(data), reward=zero,
+                 done=zero, metrics=metrics, info=info)
+
+  def step(self, state: State, action: jax.Array) -> State:
+    if action.shape[-1] != robot.ACTION_DIM:
+      raise ValueError(
+          f"{self.name}: action has dimension {action.shape[-1]}, expected "
+          f"{robot.ACTION_DIM} (6 joint targets + gripper opening)")
+    lo, hi = robot.JOINT_RANGES[:, 0], robot.JOINT_RANGES[:, 1]
+    ctrl = robot.action_to_ctrl(jnp.clip(action, lo, hi))
+    prev = state.pipeline_state
+    data = prev.replace(ctrl=ctrl)
+    data = jax.lax.fori_loop(0, self.n_substeps, lambda _, d: mjx.step(self.mjx_model, d), data)
+    # A blow-up fails this episode only: keep the last finite state, mark done.
+    nan = ~(jnp.all(jnp.isfinite(data.qpos)) & jnp.all(jnp.isfinite(data.qvel)))
+    data = data.where(nan, prev)
+    ok = self.success(data) & ~nan
+    t = state.info["t"] + 1
+    first = jnp.where((state.info["first_success_step"] < 0) & ok, t, state.info["first_success_step"])
+    done = jnp.maximum(state.done, (ok | nan).astype(jnp.float32))
+    metrics = {"success": ok.astype(jnp.float32), "nan": jnp.maximum(state.metrics["nan"], nan.astype(jnp.float32))}
+    info = {**state.info, "first_success_step": first, "t": t}
+    return state.replace(pipeline_state=data, obs=self.observation(data),
+                         reward=ok.astype(jnp.float32), done=done, metrics=metrics, info=info)
+
+  def observation(self, data):
+    q = data.qpos
+    joint_pos = jnp.concatenate([q[:robot.ARM_DOF], q[robot.ARM_DOF:robot.ARM_DOF + 1]])
+    return {"joint_pos": joint_pos, "object_state": self.object_state(data)}
+
+  def object_state(self, data):
+    """Privileged object state: each object's position and quaternion, then articulation angles."""
+    parts = [jnp.concatenate([data.xpos[self._body[b]], data.xquat[self._body[b]]]) for b in self.objects]
+    parts += [data.qpos[self._qadr[j]][None] for j in self.extra_joints]
+    return jnp.concatenate(parts) if parts else jnp.zeros((0,))
+
+
+def upright(mat, threshold=0.99):
+  """DISCOVERSE's 'upright': the body's z-axis within ~8 degrees of vertical (R[2,2] > 0.99)."""
+  return mat[2, 2] > threshold
+
+
+def xy_dist(a, b):
+  return jnp.linalg.norm(a[:2] - b[:2])
+
+
+def uniform_offset(key, half_range):
+  """Uniform offset in [-x, x] x [-y, y] (DISCOVERSE's randomisation)."""
+  h = jnp.asarray(half_range, jnp.float32)
+  return jax.random.uniform(key, (2,), minval=-h, maxval=h)

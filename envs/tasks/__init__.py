@@ -1,0 +1,1 @@
+"""The 11 DISCOVERSE tasks, one module each."""
