@@ -28,18 +28,12 @@ def box(size, pos=(0, 0, 0), rgba=(0.8, 0.2, 0.2, 1), euler=None, extra=""):
 
 
 def free_body(name, pos, geoms, mass=None):
-  inertial = "" if mass is None else ""
-  body = f'<body name="{name}" pos="{_fmt(pos)}"><freejoint name="{name}"/>{inertial}{"".join(geoms)}</body>'
+  """A body with a free joint; `mass` sets one explicit inertial (else geom density)."""
+  inertial = ""
   if mass is not None:
-    # Rescale by density after compile is awkward; set total mass through a
-    # single explicit inertial instead, with inertia from the geoms' box.
-    body = body.replace(f'<freejoint name="{name}"/>', f'<freejoint name="{name}"/><inertial pos="0 0 0" mass="{mass}" diaginertia="{_fmt(mass_inertia(mass))}"/>')
-  return body
-
-
-def mass_inertia(mass, extent=0.04):
-  i = mass * extent**2 / 6
-  return (i, i, i)
+    i = mass * 0.04**2 / 6  # a ~4 cm object's inertia: only the mass matters for these tasks
+    inertial = f'<inertial pos="0 0 0" mass="{mass}" diaginertia="{i:.3g} {i:.3g} {i:.3g}"/>'
+  return f'<body name="{name}" pos="{_fmt(pos)}"><freejoint name="{name}"/>{inertial}{"".join(geoms)}</body>'
 
 
 def ring(radius, height, thickness, n, rgba, z0=0.0, bottom=True, bottom_size=None):

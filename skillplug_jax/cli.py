@@ -22,7 +22,7 @@ def cmd_experts(args) -> int:
   import envs
   from envs import rollout
 
-  names = envs.taskset(args.taskset)
+  names = [n for part in args.taskset.split(",") for n in envs.taskset(part)]
   rows = []
   bar = tqdm(names, desc="experts", unit="task", file=sys.stderr)
   for name in bar:
@@ -66,7 +66,7 @@ def build_parser() -> argparse.ArgumentParser:
   sub = p.add_subparsers(dest="command", required=True)
   e = sub.add_parser("experts", help="run the scripted experts and print their success table",
                      formatter_class=argparse.ArgumentDefaultsHelpFormatter)
-  e.add_argument("--taskset", required=True, help="discoverse7, discoverse_fewshot4, or one task name")
+  e.add_argument("--taskset", required=True, help="discoverse7, discoverse_fewshot4, or task names (comma-separated)")
   e.add_argument("--episodes", type=int, default=100, help="seeded episodes per task")
   e.add_argument("--batch", type=int, default=100, help="environments simulated at once")
   e.add_argument("--seed", type=int, default=0)

@@ -30,7 +30,7 @@ class LaptopClose(TabletopEnv):
         <inertial pos="0 0 0" mass="1.5" diaginertia="0.005 0.005 0.005"/>
         {scene.box(BASE, (0, 0, 0), grey)}
         <body name="lid" pos="{BASE[0]} 0 {BASE[2]}">
-          <joint name="lid" type="hinge" axis="0 -1 0" range="0 2.0" damping="0.05" frictionloss="0.12"/>
+          <joint name="lid" type="hinge" axis="0 1 0" range="0 2.0" damping="0.05" frictionloss="0.12"/>
           <inertial pos="{-LID[0]} 0 {LID[2]}" mass="0.1" diaginertia="0.0003 0.0003 0.0003"/>
           {scene.box(LID, (-LID[0], 0, LID[2]), grey)}
           {scene.box((LID[0] - 0.008, LID[1] - 0.008, 0.0005), (-LID[0], 0, -0.0005), screen, extra='contype="0" conaffinity="0"')}
