@@ -6,11 +6,14 @@ VENV ?= .venv
 PY := $(VENV)/bin/python
 TASKSET ?= discoverse7
 EPISODES ?= 100
+DEMOS ?= 300
+DATASET ?= $(OUT)/datasets/$(TASKSET)_10demos_img64x64_seed0
+IMAGES ?= 1
 OUT ?= results
 
 export MUJOCO_GL ?= egl
 
-.PHONY: install test quickstart experts bench-envs scenes clean
+.PHONY: install test quickstart experts demos bench-envs bench-loader scenes clean
 
 install: $(VENV)/.installed
 
@@ -33,9 +36,16 @@ experts: install
 	mkdir -p $(OUT)
 	$(VENV)/bin/skillplug experts --taskset $(TASKSET) --episodes $(EPISODES) --json $(OUT)/experts_$(TASKSET).json
 
+# Expert demonstrations as an RLDS dataset under $(OUT)/datasets (IMAGES=0: state only).
+demos: install
+	$(VENV)/bin/skillplug demos --taskset $(TASKSET) --demos $(DEMOS) --out $(OUT)/datasets $(if $(filter 0,$(IMAGES)),--state-only,)
+
 bench-envs: install
 	mkdir -p $(OUT)
 	$(PY) -m experiments.bench_envs --out $(OUT)/bench_envs.json
+
+bench-loader: install
+	$(PY) -m experiments.bench_loader --dataset $(DATASET) --out $(OUT)/bench_loader.json
 
 scenes: install
 	$(PY) -m experiments.scene_pictures --out docs/scenes

@@ -8,6 +8,8 @@
 
 from __future__ import annotations
 
+import jax.numpy as jnp
+
 from envs.batched import BatchedEnv
 from envs.env import EnvConfig, TabletopEnv
 from envs.tasks.block_bridge_place import BlockBridgePlace
@@ -34,6 +36,19 @@ TASKSETS: dict[str, tuple[str, ...]] = {
                     "block_bridge_place", "drawer_open", "laptop_close"),
     "discoverse_fewshot4": ("cuplid_cover", "block_place", "jujube_place", "mouse_push"),
 }
+
+
+# Privileged object state is padded to this width so that one state-based
+# policy can read every task (block bridge, with four objects, is the widest).
+OBJECT_STATE_DIM: int = max(7 * len(c.objects) + len(c.extra_joints) for c in TASKS.values())
+
+
+def padded_object_state(x):
+  """Zero-pad object state (last axis) to OBJECT_STATE_DIM."""
+  pad = OBJECT_STATE_DIM - x.shape[-1]
+  if pad < 0:
+    raise ValueError(f"object state has width {x.shape[-1]} > OBJECT_STATE_DIM={OBJECT_STATE_DIM}")
+  return jnp.pad(x, [(0, 0)] * (x.ndim - 1) + [(0, pad)])
 
 
 def task_class(name: str) -> type[TabletopEnv]:

@@ -61,6 +61,29 @@ def cmd_experts(args) -> int:
   return 0
 
 
+def cmd_demos(args) -> int:
+  from skillplug_jax.data import demos, loader
+
+  cfg = demos.DemoConfig(taskset=args.taskset, demos=args.demos, images=not args.state_only,
+                         image_size=(args.image_size, args.image_size), seed=args.seed,
+                         batch=args.batch, impl=args.impl)
+  t0 = time.time()
+  path = demos.make_demos(cfg, out=args.out)
+  d = loader.load_demonstrations(path, images=cfg.images)
+  print(f"\n{path}: {d.num_episodes} episodes, {int(d.length.sum())} steps, "
+        f"{_dir_mb(path):.1f} MB on disk ({time.time() - t0:.0f} s)")
+  print("| task | episodes | mean length (steps) |")
+  print("|---|---|---|")
+  for i, task in enumerate(d.tasks):
+    sel = d.task_id == i
+    print(f"| {task} | {int(sel.sum())} | {d.length[sel].mean():.1f} |")
+  return 0
+
+
+def _dir_mb(path) -> float:
+  return sum(f.stat().st_size for f in path.rglob("*") if f.is_file()) / 2**20
+
+
 def build_parser() -> argparse.ArgumentParser:
   p = argparse.ArgumentParser(prog="skillplug", description=__doc__)
   sub = p.add_subparsers(dest="command", required=True)
@@ -73,13 +96,26 @@ def build_parser() -> argparse.ArgumentParser:
   e.add_argument("--impl", default="warp", choices=("warp", "jax"), help="MJX implementation")
   e.add_argument("--json", default=None, help="also write the table as JSON here")
   e.set_defaults(fn=cmd_experts)
+
+  d = sub.add_parser("demos", help="generate expert demonstrations as an RLDS dataset (tfds)",
+                     formatter_class=argparse.ArgumentDefaultsHelpFormatter)
+  d.add_argument("--taskset", required=True, help="discoverse7, discoverse_fewshot4, or task names (comma-separated)")
+  d.add_argument("--demos", type=int, default=300, help="successful episodes kept per task")
+  d.add_argument("--out", default="results/datasets", help="datasets directory")
+  d.add_argument("--state-only", action="store_true", help="no camera images (state-based policies)")
+  d.add_argument("--image-size", type=int, default=64, help="square camera images, pixels")
+  d.add_argument("--seed", type=int, default=0, help="reset seed of episode 0 (episode i uses fold_in(seed, i))")
+  d.add_argument("--batch", type=int, default=64, help="environments simulated at once")
+  d.add_argument("--impl", default="warp", choices=("warp", "jax"), help="MJX implementation")
+  d.set_defaults(fn=cmd_demos)
   return p
 
 
 def main(argv=None) -> int:
   args = build_parser().parse_args(argv)
-  if getattr(args, "episodes", 1) < 1:
-    raise SystemExit("skillplug: --episodes must be >= 1")
+  for flag in ("episodes", "demos", "batch"):
+    if getattr(args, flag, 1) < 1:
+      raise SystemExit(f"skillplug: --{flag} must be >= 1")
   _quiet_warp()
   try:
     return args.fn(args)

@@ -1,0 +1,1 @@
+"""Demonstrations: generation (`demos`), RLDS storage (`rlds`), statistics and the batch loader."""

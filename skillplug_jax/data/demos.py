@@ -1,0 +1,166 @@
+"""Generate a demonstration dataset: vectorised experts, successes only, written atomically.
+
+Work is staged per task (`<out>/.<name>.staging/<task>.npz`, each file
+written by one rename), so a killed run resumes with the tasks it finished.
+The tfds dataset is then built in `<out>/.<name>.building/` and moved to
+`<out>/<name>/` by a rename: a dataset directory either is complete or does
+not exist. Running again with the same arguments reuses the finished dataset.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import os
+import shutil
+import sys
+import time
+from pathlib import Path
+
+import jax
+import numpy as np
+from tqdm import tqdm
+
+import envs
+from envs import rollout
+from skillplug_jax.data import normalization, rlds
+from skillplug_jax.data.recording import Episode, record_expert
+
+
+@dataclasses.dataclass(frozen=True)
+class DemoConfig:
+  """What to generate. Episode i of a task starts from `rollout.reset_keys(seed, ...)[i]`."""
+  taskset: str = "discoverse7"  # taskset name or comma-separated task names
+  demos: int = 300  # successful episodes kept per task
+  images: bool = True
+  image_size: tuple[int, int] = (64, 64)
+  seed: int = 0
+  batch: int = 64  # environments simulated at once
+  impl: str = "warp"
+
+  @property
+  def tasks(self) -> tuple[str, ...]:
+    return tuple(n for part in self.taskset.split(",") for n in envs.taskset(part))
+
+  @property
+  def name(self) -> str:
+    obs = f"img{self.image_size[0]}x{self.image_size[1]}" if self.images else "state"
+    return f"{self.taskset.replace(',', '+')}_{self.demos}demos_{obs}_seed{self.seed}"
+
+  @property
+  def spec(self) -> rlds.DatasetSpec:
+    return rlds.DatasetSpec(self.tasks, tuple(self.image_size) if self.images else None)
+
+
+def dataset_path(cfg: DemoConfig, out: str | os.PathLike) -> Path:
+  return Path(out) / cfg.name
+
+
+def make_demos(cfg: DemoConfig, out: str | os.PathLike = "results/datasets", progress: bool = True) -> Path:
+  """Generate (or reuse) the dataset for `cfg` under `out`; return its directory."""
+  if cfg.demos < 1:
+    raise ValueError(f"demos must be >= 1, got {cfg.demos}")
+  tasks = cfg.tasks  # validates names
+  final = dataset_path(cfg, out)
+  if final.exists():
+    builder = rlds.open_dataset(final)  # raises if it is not a complete dataset
+    if rlds.spec_of(builder) != cfg.spec:
+      raise rlds.DatasetError(f"{final} exists but holds {rlds.spec_of(builder)}, not {cfg.spec}")
+    if progress:
+      print(f"reusing {final}", file=sys.stderr)
+    return final
+
+  staging = Path(out) / f".{cfg.name}.staging"
+  staging.mkdir(parents=True, exist_ok=True)
+  bar = tqdm(total=cfg.demos * len(tasks), desc="demos kept", unit="ep", file=sys.stderr,
+             disable=not progress, dynamic_ncols=True)
+  stats = {}
+  for task in tasks:
+    path = staging / f"{task}.npz"
+    if not path.exists():
+      kept, info = _generate_task(cfg, task, bar)
+      _save_stage(path, kept, info)
+    else:
+      bar.update(cfg.demos)
+    stats[task] = dict(_load_stage(path)[1])
+  bar.close()
+
+  def records():
+    for task in tasks:
+      kept, info = _load_stage(staging / f"{task}.npz")
+      for idx, ep in zip(info["reset_index"], kept):
+        yield rlds.EpisodeRecord(task, cfg.seed, int(idx), ep)
+
+  if progress:
+    print(f"writing {final} ...", file=sys.stderr)
+  building = Path(out) / f".{cfg.name}.building"
+  shutil.rmtree(building, ignore_errors=True)
+  metadata = dict(generator="skillplug_jax.data.demos", config=_config_dict(cfg),
+                  device=str(jax.devices()[0]),
+                  per_task={t: {k: v for k, v in s.items() if k != "reset_index"} for t, s in stats.items()})
+  version_dir = rlds.write_dataset(building, cfg.spec, records, metadata)
+  normalization.write_stats(version_dir, normalization.compute_stats(
+      (ep for kept, _ in (_load_stage(staging / f"{t}.npz") for t in tasks) for ep in kept)))
+  os.replace(version_dir, final)
+  shutil.rmtree(building, ignore_errors=True)
+  shutil.rmtree(staging, ignore_errors=True)
+  return final
+
+
+def _config_dict(cfg: DemoConfig) -> dict:
+  d = dataclasses.asdict(cfg)
+  d["image_size"] = list(cfg.image_size)
+  return d
+
+
+def _generate_task(cfg: DemoConfig, task: str, bar) -> tuple[list[Episode], dict]:
+  """Run seeded expert batches until `cfg.demos` episodes succeed."""
+  benv = envs.make(task, num_envs=min(cfg.batch, cfg.demos), render=cfg.images,
+                   image_size=cfg.image_size, impl=cfg.impl)
+  kept, indices, attempts, nans, t0 = [], [], 0, 0, time.time()
+  max_attempts = 3 * cfg.demos + 2 * benv.num_envs
+  while len(kept) < cfg.demos:
+    if attempts >= max_attempts:
+      raise RuntimeError(f"{task}: only {len(kept)} of {attempts} expert episodes succeeded; "
+                         f"cannot collect {cfg.demos} demonstrations")
+    bar.set_postfix_str(f"{task} (simulating {benv.num_envs})")
+    keys = rollout.reset_keys(cfg.seed, benv.num_envs, offset=attempts)
+    for b, ep in enumerate(record_expert(benv, keys)):
+      nans += ep.nan
+      if ep.success and len(kept) < cfg.demos:
+        kept.append(ep)
+        indices.append(attempts + b)
+        bar.update(1)
+    attempts += benv.num_envs
+  wall = time.time() - t0
+  info = dict(reset_index=np.asarray(indices, np.int64), attempts=attempts, kept=len(kept),
+              expert_success_rate=len(kept) / attempts if attempts else 0.0, nan_episodes=nans,
+              wall_s=round(wall, 2), mean_length=float(np.mean([len(e.action) for e in kept])))
+  return kept, info
+
+
+def _save_stage(path: Path, kept: list[Episode], info: dict) -> None:
+  """All kept episodes of a task, concatenated, in one atomically written .npz."""
+  lengths = np.asarray([len(e.action) for e in kept], np.int64)
+  arrays = {f"obs/{k}": np.concatenate([e.observation[k] for e in kept]) for k in kept[0].observation}
+  arrays.update(action=np.concatenate([e.action for e in kept]), lengths=lengths,
+                nan=np.asarray([e.nan for e in kept]), success=np.asarray([e.success for e in kept]))
+  for k, v in info.items():
+    arrays[f"info/{k}"] = np.asarray(v)
+  tmp = path.with_suffix(".tmp.npz")
+  np.savez(tmp, **arrays)
+  os.replace(tmp, path)
+
+
+def _load_stage(path: Path) -> tuple[list[Episode], dict]:
+  with np.load(path) as z:
+    lengths = z["lengths"]
+    ends = np.cumsum(lengths)
+    starts = ends - lengths
+    obs = {k[4:]: z[k] for k in z.files if k.startswith("obs/")}
+    action = z["action"]
+    eps = [Episode(observation={k: v[s:e] for k, v in obs.items()}, action=action[s:e],
+                   success=bool(z["success"][i]), nan=bool(z["nan"][i]))
+           for i, (s, e) in enumerate(zip(starts, ends))]
+    info = {k[5:]: z[k].item() if z[k].ndim == 0 else z[k] for k in z.files if k.startswith("info/")}
+  return eps, info
+

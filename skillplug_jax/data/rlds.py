@@ -1,0 +1,250 @@
+"""Demonstrations on disk: one TensorFlow-Datasets dataset in RLDS layout.
+
+Each record is an episode: `steps` (observation, action, reward, discount,
+is_first, is_last, is_terminal) and `episode_metadata` (task, reset seed and
+index, length, expert success). Files are ArrayRecord, so the dataset is
+written and read back without TensorFlow (`tfds.builder_from_directory(path)
+.as_data_source()`), and any RLDS tool can read it. Images are PNG, encoded
+through PIL.
+
+Step t holds the observation the expert saw and the action it then sent. The
+last step of an episode is its last action; `is_terminal` is set there when
+the episode ended in success.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import os
+from pathlib import Path
+from typing import Callable, Iterable, Iterator, NamedTuple
+
+import numpy as np
+import PIL.Image
+import tensorflow_datasets as tfds
+
+import envs
+from envs.batched import CAMERAS
+from skillplug_jax.data.recording import Episode
+
+ACTION_DIM = envs.robot.ACTION_DIM
+FORMAT_VERSION = "1.0.0"
+BUILDER_NAME = "skillplug_demos"
+
+
+class DatasetError(ValueError):
+  """A dataset is missing, corrupt, or does not match what the caller needs."""
+
+
+class DatasetSpec(NamedTuple):
+  """What a dataset holds: its tasks, and its image size (None: state only)."""
+  tasks: tuple[str, ...]
+  image_size: tuple[int, int] | None  # (width, height) of both cameras
+
+
+def features(spec: DatasetSpec) -> tfds.features.FeaturesDict:
+  obs = {
+      "joint_pos": tfds.features.Tensor(shape=(ACTION_DIM,), dtype=np.float32),
+      "object_state": tfds.features.Tensor(shape=(envs.OBJECT_STATE_DIM,), dtype=np.float32),
+  }
+  if spec.image_size is not None:
+    w, h = spec.image_size
+    for cam in CAMERAS:
+      obs[f"{cam}_rgb"] = tfds.features.Image(shape=(h, w, 3), dtype=np.uint8, encoding_format="png")
+  return tfds.features.FeaturesDict({
+      "steps": tfds.features.Dataset({
+          "observation": tfds.features.FeaturesDict(obs),
+          "action": tfds.features.Tensor(shape=(ACTION_DIM,), dtype=np.float32),
+          "reward": tfds.features.Scalar(dtype=np.float32),
+          "discount": tfds.features.Scalar(dtype=np.float32),
+          "is_first": tfds.features.Scalar(dtype=np.bool_),
+          "is_last": tfds.features.Scalar(dtype=np.bool_),
+          "is_terminal": tfds.features.Scalar(dtype=np.bool_),
+      }),
+      "episode_metadata": tfds.features.FeaturesDict({
+          "episode_id": tfds.features.Text(),
+          "task": tfds.features.Text(),
+          "task_id": tfds.features.Scalar(dtype=np.int32),
+          "reset_seed": tfds.features.Scalar(dtype=np.int64),
+          "reset_index": tfds.features.Scalar(dtype=np.int64),
+          "length": tfds.features.Scalar(dtype=np.int32),
+          "success": tfds.features.Scalar(dtype=np.bool_),
+      }),
+  })
+
+
+class EpisodeRecord(NamedTuple):
+  """An episode with the metadata it is written with."""
+  task: str
+  reset_seed: int
+  reset_index: int
+  episode: Episode
+
+
+def rlds_example(spec: DatasetSpec, rec: EpisodeRecord) -> dict:
+  ep = rec.episode
+  length = len(ep.action)
+  steps = []
+  for t in range(length):
+    obs = {"joint_pos": ep.observation["joint_pos"][t], "object_state": ep.observation["object_state"][t]}
+    if spec.image_size is not None:
+      for cam in CAMERAS:
+        obs[f"{cam}_rgb"] = PIL.Image.fromarray(ep.observation[f"{cam}_rgb"][t])
+    last = t == length - 1
+    steps.append(dict(observation=obs, action=ep.action[t],
+                      reward=np.float32(last and ep.success), discount=np.float32(1.0),
+                      is_first=t == 0, is_last=last, is_terminal=last and ep.success))
+  meta = dict(episode_id=episode_id(rec.task, rec.reset_index), task=rec.task,
+              task_id=spec.tasks.index(rec.task), reset_seed=rec.reset_seed,
+              reset_index=rec.reset_index, length=length, success=ep.success)
+  return {"steps": steps, "episode_metadata": meta}
+
+
+def episode_id(task: str, reset_index: int) -> str:
+  return f"{task}/{reset_index:06d}"
+
+
+class _Builder(tfds.core.GeneratorBasedBuilder):
+  """Writes the episodes handed to it; reading goes through builder_from_directory."""
+
+  VERSION = tfds.core.Version(FORMAT_VERSION)
+  _checksums_path = None  # nothing is downloaded (and the lookup needs importlib_resources)
+  RELEASE_NOTES = {FORMAT_VERSION: "Scripted-expert demonstrations, RLDS layout."}
+
+  def __init__(self, *, spec: DatasetSpec, records: Callable[[], Iterable[EpisodeRecord]],
+               metadata: dict, **kwargs):
+    self._spec, self._records, self._metadata = spec, records, metadata
+    super().__init__(**kwargs)
+
+  def _info(self):
+    return self.dataset_info_from_configs(
+        features=features(self._spec),
+        description="SkillPlug-JAX scripted-expert demonstrations (RLDS).",
+        metadata=tfds.core.MetadataDict(self._metadata))
+
+  def _split_generators(self, dl_manager):
+    return {"train": self._generate_examples()}
+
+  def _generate_examples(self) -> Iterator:
+    for rec in self._records():
+      yield episode_id(rec.task, rec.reset_index), rlds_example(self._spec, rec)
+
+
+_Builder.name = BUILDER_NAME
+
+
+@contextlib.contextmanager
+def _tfds_bars_off():
+  active = tfds.core.utils.tqdm_utils._active
+  tfds.display_progress_bar(False)  # our own bar shows progress; tfds' would interleave
+  try:
+    yield
+  finally:
+    tfds.display_progress_bar(active)
+
+
+def write_dataset(build_root: str | os.PathLike, spec: DatasetSpec,
+                  records: Callable[[], Iterable[EpisodeRecord]], metadata: dict) -> Path:
+  """Build the dataset under `build_root`; return its version directory.
+
+  tfds writes into an `incomplete.*` directory and renames it when done, so
+  a killed build leaves nothing that loads. The caller moves the returned
+  directory to its final place (one rename: atomic too).
+  """
+  metadata = {**metadata, "tasks": list(spec.tasks),
+              "image_size": None if spec.image_size is None else list(spec.image_size)}
+  builder = _Builder(spec=spec, records=records, metadata=metadata,
+                     data_dir=os.fspath(build_root), file_format="array_record")
+  with _tfds_bars_off():
+    builder.download_and_prepare(download_config=tfds.download.DownloadConfig(try_download_gcs=False))
+  return Path(builder.data_dir)
+
+
+# ---- reading ----------------------------------------------------------------
+
+REQUIRED_STEP_FIELDS = ("observation", "action", "is_first", "is_last", "is_terminal")
+REQUIRED_OBS_FIELDS = ("joint_pos", "object_state")
+REQUIRED_META_FIELDS = ("task", "task_id", "length", "success")
+
+
+def open_dataset(path: str | os.PathLike):
+  """The tfds builder of a dataset directory, with errors that say what is wrong."""
+  path = Path(path)
+  if not path.is_dir():
+    raise DatasetError(f"no dataset at {path} (generate one with `skillplug demos`)")
+  if not (path / "dataset_info.json").is_file() or not (path / "features.json").is_file():
+    raise DatasetError(f"{path} is not a complete dataset: dataset_info.json or features.json "
+                       "is missing (an interrupted write?); delete it and generate it again")
+  try:
+    return tfds.builder_from_directory(os.fspath(path))
+  except Exception as e:  # noqa: BLE001  tfds raises many kinds; name the file
+    raise DatasetError(f"{path}: cannot read the dataset ({type(e).__name__}: {e})") from e
+
+
+def spec_of(builder) -> DatasetSpec:
+  """The dataset's tasks and image size, checked against its features."""
+  feats = builder.info.features
+  _check_fields(builder.data_dir, feats)
+  meta = builder.info.metadata or {}
+  if "tasks" not in meta:
+    raise DatasetError(f"{builder.data_dir}: metadata has no task list (not a skillplug dataset?)")
+  obs = feats["steps"]["observation"]
+  image_size = None
+  if f"{CAMERAS[0]}_rgb" in obs:
+    h, w, _ = obs[f"{CAMERAS[0]}_rgb"].shape
+    image_size = (w, h)
+  return DatasetSpec(tasks=tuple(meta["tasks"]), image_size=image_size)
+
+
+def _check_fields(where, feats):
+  names = set(feats.keys())
+  if "steps" not in names or "episode_metadata" not in names:
+    raise DatasetError(f"{where}: not RLDS: expected 'steps' and 'episode_metadata', found {sorted(names)}")
+  steps = feats["steps"]
+  missing = [k for k in REQUIRED_STEP_FIELDS if k not in steps.keys()]
+  missing += [f"observation/{k}" for k in REQUIRED_OBS_FIELDS if k not in steps["observation"].keys()]
+  missing += [f"episode_metadata/{k}" for k in REQUIRED_META_FIELDS
+              if k not in feats["episode_metadata"].keys()]
+  if missing:
+    raise DatasetError(f"{where}: missing fields {missing}")
+  adim = steps["action"].shape
+  if adim != (ACTION_DIM,):
+    raise DatasetError(f"{where}: action has shape {adim}, expected ({ACTION_DIM},) "
+                       "(6 joint targets + gripper opening)")
+  sdim = steps["observation"]["object_state"].shape
+  if sdim != (envs.OBJECT_STATE_DIM,):
+    raise DatasetError(f"{where}: object_state has shape {sdim}, expected ({envs.OBJECT_STATE_DIM},)")
+
+
+def read_episodes(builder) -> Iterator[tuple[dict, dict]]:
+  """Yield (metadata, steps) per episode; steps are stacked numpy arrays."""
+  source = builder.as_data_source(split="train")
+  for i in range(len(source)):
+    ex = source[i]
+    meta = {k: (v.decode() if isinstance(v, bytes) else v) for k, v in ex["episode_metadata"].items()}
+    steps = ex["steps"]
+    rows = [steps[t] for t in range(len(steps))]
+    yield meta, _stack(rows)
+
+
+def _stack(rows: list[dict]) -> dict:
+  out = {}
+  for k, v in rows[0].items():
+    if isinstance(v, dict):
+      out[k] = _stack([r[k] for r in rows])
+    else:
+      out[k] = np.stack([np.asarray(r[k]) for r in rows])
+  return out
+
+
+def read_json(path: Path) -> dict:
+  with open(path) as f:
+    return json.load(f)
+
+
+def write_json_atomic(path: Path, payload: dict) -> None:
+  tmp = Path(f"{path}.tmp")
+  with open(tmp, "w") as f:
+    json.dump(payload, f, indent=2)
+  os.replace(tmp, path)
