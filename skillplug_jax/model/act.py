@@ -1,0 +1,130 @@
+"""ACT (Zhao et al., 2023) split into the two halves SkillPlug plugs between.
+
+`Encoder`    : obs + style latent -> scene tokens h [B, N, hidden]   (f_enc)
+`ActionHead` : tokens [B, N, hidden] -> action chunk [B, chunk, A]   (f_act)
+`CVAEEncoder`: ACT's training-only encoder of the demonstrated chunk into the
+               32-D style latent; at inference the latent is zero.
+
+Token layout of h: [style, joint_pos, then either every camera's feature map
+cells (camera-major, row-major) or one object_state token]. One ResNet-18 is
+shared by all cameras, as in ACT's code; a learned per-camera embedding tells
+them apart.
+"""
+
+from __future__ import annotations
+
+from typing import Mapping
+
+import flax.linen as nn
+import jax.numpy as jnp
+
+from skillplug_jax.model.config import ModelConfig
+from skillplug_jax.model.resnet import ResNet18
+from skillplug_jax.model.transformer import (DecoderLayer, TransformerEncoder,
+                                             sinusoidal_1d, sinusoidal_2d)
+
+_embed_init = nn.initializers.normal(stddev=1.0)  # like torch nn.Embedding
+
+
+def feature_map_size(config: ModelConfig) -> tuple[int, int]:
+  """Spatial size of the ResNet-18 output: the input shrinks by 2 five times."""
+  h, w = config.image_size
+  for _ in range(5):
+    h, w = -(-h // 2), -(-w // 2)
+  return h, w
+
+
+def num_tokens(config: ModelConfig) -> int:
+  """N, the number of scene tokens the encoder emits."""
+  if not config.use_images:
+    return 3
+  h, w = feature_map_size(config)
+  return 2 + len(config.cameras) * h * w
+
+
+class Encoder(nn.Module):
+  """f_enc: backbone, input projections and the transformer encoder."""
+  config: ModelConfig
+
+  @nn.compact
+  def __call__(self, obs: Mapping[str, jnp.ndarray], style_z: jnp.ndarray,
+               deterministic: bool = True) -> jnp.ndarray:
+    cfg, dt = self.config, self.config.compute_dtype
+    batch = style_z.shape[0]
+    style = nn.Dense(cfg.hidden, dtype=dt, name="style_proj")(style_z.astype(dt))
+    joint = nn.Dense(cfg.hidden, dtype=dt, name="joint_proj")(obs["joint_pos"].astype(dt))
+    token_pos = self.param("token_pos", _embed_init, (2, cfg.hidden))
+    tokens = [jnp.stack([style, joint], axis=1) + token_pos.astype(dt)]
+    if cfg.use_images:
+      tokens.append(self._image_tokens(obs, batch))
+    else:
+      x = obs["object_state"].astype(dt)
+      x = nn.relu(nn.Dense(cfg.hidden, dtype=dt, name="state_fc1")(x))
+      x = nn.Dense(cfg.hidden, dtype=dt, name="state_fc2")(x)
+      state_pos = self.param("state_pos", _embed_init, (cfg.hidden,))
+      tokens.append((x + state_pos.astype(dt))[:, None, :])
+    x = jnp.concatenate(tokens, axis=1)
+    return TransformerEncoder(cfg.enc_layers, cfg.hidden, cfg.heads, cfg.ff, cfg.dropout,
+                              dt, name="transformer")(x, deterministic)
+
+  def _image_tokens(self, obs, batch):
+    cfg, dt = self.config, self.config.compute_dtype
+    n_cam = len(cfg.cameras)
+    images = jnp.concatenate([obs[f"{cam}_rgb"] for cam in cfg.cameras], axis=0)
+    fmap = ResNet18(cfg.backbone_width, dtype=dt, name="backbone")(images)
+    _, h, w, _ = fmap.shape
+    x = nn.Dense(cfg.hidden, dtype=dt, name="image_proj")(fmap)  # ACT's 1x1 conv
+    x = x.reshape(n_cam, batch, h * w, cfg.hidden).transpose(1, 0, 2, 3)
+    camera_embed = self.param("camera_embed", _embed_init, (n_cam, 1, cfg.hidden))
+    x = x + jnp.asarray(sinusoidal_2d(h, w, cfg.hidden), dt) + camera_embed.astype(dt)
+    return x.reshape(batch, n_cam * h * w, cfg.hidden)
+
+
+class CVAEEncoder(nn.Module):
+  """ACT's style-latent encoder over [CLS, joint_pos, a_1..a_T], training only.
+
+  Padded steps (past the episode end) are masked out as attention keys.
+  Returns (mu, logvar), each [B, latent_dim], in float32.
+  """
+  config: ModelConfig
+
+  @nn.compact
+  def __call__(self, joint_pos, actions, action_mask, deterministic: bool = True):
+    cfg, dt = self.config, self.config.compute_dtype
+    batch = actions.shape[0]
+    cls = self.param("cls", _embed_init, (cfg.hidden,))
+    joint = nn.Dense(cfg.hidden, dtype=dt, name="joint_proj")(joint_pos.astype(dt))
+    acts = nn.Dense(cfg.hidden, dtype=dt, name="action_proj")(actions.astype(dt))
+    x = jnp.concatenate([
+        jnp.broadcast_to(cls.astype(dt), (batch, 1, cfg.hidden)), joint[:, None], acts], axis=1)
+    x = x + jnp.asarray(sinusoidal_1d(x.shape[1], cfg.hidden), dt)
+    valid = jnp.concatenate([jnp.ones((batch, 2), bool), action_mask.astype(bool)], axis=1)
+    x = TransformerEncoder(cfg.cvae_enc_layers, cfg.hidden, cfg.heads, cfg.ff, cfg.dropout,
+                           dt, name="transformer")(x, deterministic, valid[:, None, None, :])
+    # Zero-initialised: the latent starts at the prior, so the KL term (weight
+    # 10) does not dominate the first steps (a random start costs ~30 nats).
+    stats = nn.Dense(2 * cfg.latent_dim, dtype=jnp.float32, kernel_init=nn.initializers.zeros,
+                     name="latent_proj")(x[:, 0])
+    mu, logvar = jnp.split(stats.astype(jnp.float32), 2, axis=-1)
+    return mu, logvar
+
+
+class ActionHead(nn.Module):
+  """f_act: `chunk` learned queries decode the tokens into an action chunk."""
+  config: ModelConfig
+
+  @nn.compact
+  def __call__(self, memory: jnp.ndarray, deterministic: bool = True) -> jnp.ndarray:
+    cfg, dt = self.config, self.config.compute_dtype
+    queries = self.param("queries", _embed_init, (cfg.chunk, cfg.hidden))
+    x = jnp.broadcast_to(queries.astype(dt), (memory.shape[0], cfg.chunk, cfg.hidden))
+    memory = memory.astype(dt)
+    outputs = []
+    for i in range(cfg.dec_layers):
+      x = DecoderLayer(cfg.hidden, cfg.heads, cfg.ff, cfg.dropout, dt,
+                       name=f"layer{i + 1}")(x, memory, deterministic)
+      outputs.append(x)
+    # ACT's bug, kept as an option: every layer runs, only the first is read.
+    x = outputs[0] if cfg.decoder_first_layer_only else outputs[-1]
+    x = nn.LayerNorm(dtype=dt, name="final_norm")(x)
+    return nn.Dense(cfg.action_dim, dtype=jnp.float32, name="action_proj")(x).astype(jnp.float32)

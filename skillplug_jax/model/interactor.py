@@ -1,0 +1,66 @@
+"""Skill interactor: u_k = Interactor(h, s_k), one copy of the scene tokens per skill.
+
+Every interactor maps scene tokens h [B, N, D] and (per-sample) skill vectors
+s [B, K, D] to u [B, K, N, D]; `Policy` picks one by name from `INTERACTORS`
+(`ModelConfig.interactor`), so a new reading of the paper's "cross-attention"
+is a new class here and one dictionary entry.
+"""
+
+from __future__ import annotations
+
+import flax.linen as nn
+import jax.numpy as jnp
+
+from skillplug_jax.model.transformer import FeedForward
+
+
+class QueryOffsetInteractor(nn.Module):
+  """The scene tokens attend to themselves with queries offset by P s_k.
+
+  DESIGN's reading of the paper: the skill shifts what every token looks for,
+  so each skill gathers different scene content; a residual keeps h and a
+  pre-normed FF block follows, as in a transformer layer.
+  """
+  hidden: int
+  heads: int
+  ff: int
+  dropout: float = 0.0
+  dtype: jnp.dtype = jnp.float32
+
+  @nn.compact
+  def __call__(self, h, skills, deterministic: bool = True):
+    h, skills = h.astype(self.dtype), skills.astype(self.dtype)
+    hn = nn.LayerNorm(dtype=self.dtype, name="norm1")(h)[:, None]  # [B, 1, N, D]
+    offset = nn.Dense(self.hidden, dtype=self.dtype, name="skill_proj")(skills)
+    queries = hn + offset[:, :, None, :]  # [B, K, N, D]
+    keys = jnp.broadcast_to(hn, queries.shape)
+    y = nn.MultiHeadDotProductAttention(
+        num_heads=self.heads, dropout_rate=self.dropout, dtype=self.dtype, name="attn")(
+            queries, keys, deterministic=deterministic)
+    u = h[:, None] + nn.Dropout(self.dropout)(y, deterministic=deterministic)
+    y = nn.LayerNorm(dtype=self.dtype, name="norm2")(u)
+    y = FeedForward(self.hidden, self.ff, self.dropout, self.dtype, name="ff")(y, deterministic)
+    return u + nn.Dropout(self.dropout)(y, deterministic=deterministic)
+
+
+class FiLMInteractor(nn.Module):
+  """A cheaper alternative: the skill scales and shifts the normalised tokens
+  (FiLM), then an FF block writes the result back onto h."""
+  hidden: int
+  heads: int  # unused; same constructor as every interactor
+  ff: int
+  dropout: float = 0.0
+  dtype: jnp.dtype = jnp.float32
+
+  @nn.compact
+  def __call__(self, h, skills, deterministic: bool = True):
+    h, skills = h.astype(self.dtype), skills.astype(self.dtype)
+    gamma, beta = jnp.split(
+        nn.Dense(2 * self.hidden, dtype=self.dtype, name="film")(skills), 2, axis=-1)
+    hn = nn.LayerNorm(dtype=self.dtype, name="norm")(h)[:, None]
+    y = hn * (1.0 + gamma[:, :, None]) + beta[:, :, None]
+    y = FeedForward(self.hidden, self.ff, self.dropout, self.dtype, name="ff")(y, deterministic)
+    return h[:, None] + nn.Dropout(self.dropout)(y, deterministic=deterministic)
+
+
+INTERACTORS = {"query_offset": QueryOffsetInteractor, "film": FiLMInteractor}

@@ -1,0 +1,27 @@
+"""Router: one softmax over the K skills per predicted chunk."""
+
+from __future__ import annotations
+
+import flax.linen as nn
+import jax
+import jax.numpy as jnp
+
+
+class Router(nn.Module):
+  """r = softmax(MLP(mean over tokens of h)) -> [B, K], float32.
+
+  The output layer starts at zero so every skill gets weight 1/K at first
+  and no skill wins by initialisation; it is also what few-shot adaptation
+  retrains, together with the action head.
+  """
+  num_skills: int
+  hidden: int
+  dtype: jnp.dtype = jnp.float32
+
+  @nn.compact
+  def __call__(self, h: jnp.ndarray) -> jnp.ndarray:
+    x = h.astype(self.dtype).mean(axis=1)
+    x = nn.relu(nn.Dense(self.hidden, dtype=self.dtype, name="fc1")(x))
+    logits = nn.Dense(self.num_skills, dtype=jnp.float32, kernel_init=nn.initializers.zeros,
+                      name="fc2")(x)
+    return jax.nn.softmax(logits.astype(jnp.float32), axis=-1)

@@ -1,0 +1,105 @@
+"""Each loss term against numbers worked out by hand."""
+
+import math
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from skillplug_jax import losses
+
+
+def test_reconstruction_l1_averages_valid_steps_only():
+  pred = jnp.zeros((2, 3, 2))
+  target = jnp.array([[[1., 2.], [3., -1.], [100., 100.]],
+                      [[2., 0.], [50., 50.], [50., 50.]]])
+  mask = jnp.array([[True, True, False], [True, False, False]])
+  # valid |errors|: 1+2+3+1 and 2+0, over 4+2 steps x 2 dims
+  assert float(losses.reconstruction_l1(pred, target, mask)) == pytest.approx(9 / 6)
+  # padded steps get no gradient
+  grad = jax.grad(losses.reconstruction_l1)(pred + 0.5, target, mask)
+  assert np.all(np.asarray(grad)[~np.asarray(mask)] == 0)
+  assert np.all(np.asarray(grad)[np.asarray(mask)] != 0)
+
+
+def test_reconstruction_l1_without_padding_is_plain_mean():
+  pred = jnp.arange(12.).reshape(1, 4, 3)
+  target = jnp.zeros_like(pred)
+  assert float(losses.reconstruction_l1(pred, target, jnp.ones((1, 4), bool))) == pytest.approx(5.5)
+
+
+def test_kl_zero_at_prior_and_hand_values():
+  assert float(losses.kl_standard_normal(jnp.zeros((3, 4, 8)), jnp.zeros((3, 4, 8)))) == 0.0
+  # sum over latent dims: 0.5 * (1 + 4)
+  kl = losses.kl_standard_normal(jnp.array([[1., 2.]]), jnp.zeros((1, 2)))
+  assert float(kl) == pytest.approx(2.5)
+  # variance 2: 0.5 * (2 - 1 - ln 2)
+  assert float(losses.kl_standard_normal(jnp.zeros((1, 1)), jnp.full((1, 1), math.log(2.)))) \
+      == pytest.approx(0.5 * (1 - math.log(2.)))
+  # mean over [B, K]: entries 2.5 and 0
+  mu = jnp.array([[[1., 2.], [0., 0.]]])
+  assert float(losses.kl_standard_normal(mu, jnp.zeros_like(mu))) == pytest.approx(1.25)
+
+
+def test_bsa_hand_values():
+  # one-hot target, uniform scores: log 2
+  assert float(losses.behaviour_skill_alignment(jnp.array([[1., 0.]]), jnp.zeros((1, 2)))) \
+      == pytest.approx(math.log(2.))
+  # scores whose softmax equals the target: the target's entropy
+  r = jnp.array([[0.25, 0.75]])
+  entropy = -(0.25 * math.log(0.25) + 0.75 * math.log(0.75))
+  assert float(losses.behaviour_skill_alignment(r, jnp.log(r))) == pytest.approx(entropy, rel=1e-6)
+
+
+def test_bsa_gives_router_no_gradient():
+  r = jax.nn.softmax(jnp.array([[0.3, -1.0, 2.0, 0.1], [1.0, 1.0, 0.0, -2.0]]))
+  logits = jnp.array([[1.0, 0.0, -1.0, 0.5], [0.0, 2.0, 0.0, 1.0]])
+  g_r, g_logits = jax.grad(losses.behaviour_skill_alignment, argnums=(0, 1))(r, logits)
+  assert np.all(np.asarray(g_r) == 0)
+  # d/dlogits of the batch-mean cross-entropy: (softmax - target) / B
+  np.testing.assert_allclose(g_logits, (jax.nn.softmax(logits) - r) / 2, atol=1e-6)
+
+
+def test_skill_diversity_orthogonal_identical_and_hand_value():
+  assert float(losses.skill_diversity(jnp.eye(4)[None] * 3.0)) == pytest.approx(0.0, abs=1e-7)
+  same = jnp.tile(jnp.array([[1.0, -2.0, 0.5]]), (4, 1))[None]
+  assert float(losses.skill_diversity(same)) == pytest.approx(1.0)
+  assert float(losses.skill_diversity(jnp.array([[[1., 0.], [-2., 0.]]]))) == pytest.approx(-1.0)
+  # cosines 0, 1/sqrt2, 1/sqrt2 (each counted twice) over K(K-1) = 6; scale-free
+  u = jnp.array([[[1., 0.], [0., 5.], [2., 2.]]])
+  assert float(losses.skill_diversity(u)) == pytest.approx(math.sqrt(2) / 3, rel=1e-6)
+  batch = jnp.stack([jnp.eye(4), jnp.ones((4, 4))])  # averaged over the batch
+  assert float(losses.skill_diversity(batch)) == pytest.approx(0.5)
+
+
+def _outputs(skillplug: bool):
+  out = dict(pred_actions=jnp.zeros((1, 2, 1)), cvae_mu=jnp.array([[1., 0.]]),
+             cvae_logvar=jnp.zeros((1, 2)))
+  if skillplug:
+    out.update(router_probs=jnp.array([[1., 0.]]), traj_logits=jnp.zeros((1, 2)),
+               skill_features=jnp.array([[[1., 0.], [1., 0.]]]),
+               posterior_mu=jnp.array([[[2.], [0.]]]), posterior_logvar=jnp.zeros((1, 2, 1)))
+  return out
+
+
+def test_total_loss_weights_each_term():
+  batch = dict(actions=jnp.array([[[1.], [7.]]]), action_mask=jnp.array([[True, False]]))
+  w = losses.LossWeights(rec=1.0, kl=0.5, bsa=2.0, sd=3.0, cvae_kl=10.0)
+  loss, m = losses.total_loss(_outputs(False), batch, w)
+  assert set(m) == {"loss", "rec", "cvae_kl"}
+  assert float(m["rec"]) == pytest.approx(1.0) and float(m["cvae_kl"]) == pytest.approx(0.5)
+  assert float(loss) == pytest.approx(1.0 + 10 * 0.5)
+
+  loss, m = losses.total_loss(_outputs(True), batch, w)
+  assert set(m) == {"loss", "rec", "cvae_kl", "kl", "bsa", "sd"}
+  assert float(m["kl"]) == pytest.approx(1.0)  # mean over k of 2 and 0
+  assert float(m["bsa"]) == pytest.approx(math.log(2.))
+  assert float(m["sd"]) == pytest.approx(1.0)
+  assert float(loss) == pytest.approx(1.0 + 5.0 + 0.5 * 1.0 + 2.0 * math.log(2.) + 3.0 * 1.0)
+  assert float(m["loss"]) == float(loss)
+
+
+def test_default_weights_keep_acts_cvae_weight():
+  w = losses.LossWeights()
+  assert w.rec == 1.0 and w.cvae_kl == 10.0

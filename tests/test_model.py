@@ -1,0 +1,311 @@
+"""Shapes, parameter groups, freezing and inference paths of the policy.
+
+Shapes come from `jax.eval_shape` (tracing only, no compile), so every
+policy x observation variant is checked in well under a second; the few
+numerical tests share one tiny state-only SkillPlug model, compiled without
+XLA's optimisation passes (these tests check values, not speed).
+"""
+
+import dataclasses
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optax
+import pytest
+
+from skillplug_jax import losses
+from skillplug_jax.model import (GROUPS, ModelConfig, Policy, budget, masked_optimizer, paper,
+                                 param_groups, quick, trainable_mask)
+from skillplug_jax.model.act import ActionHead, CVAEEncoder, Encoder, num_tokens
+from skillplug_jax.model.interactor import INTERACTORS
+from skillplug_jax.model.posterior import TrajectorySkillPosterior
+from skillplug_jax.model.resnet import ResNet18
+from skillplug_jax.model.router import Router
+from skillplug_jax.model.skills import SkillLibrary
+
+FAST_COMPILE = {"xla_backend_optimization_level": 0, "xla_llvm_disable_expensive_passes": True}
+TINY = dict(hidden=32, heads=2, ff=64, enc_layers=1, dec_layers=2, cvae_enc_layers=1, chunk=6,
+            latent_dim=8, skill_latent_dim=8, alignment_dim=16, num_skills=3)
+B = 2
+
+
+def tiny(policy="skillplug", images=False, **kw) -> ModelConfig:
+  base = paper() if images else quick()
+  extra = dict(image_size=(32, 32), backbone_width=8) if images else {}
+  return dataclasses.replace(base, policy=policy, **{**TINY, **extra, **kw})
+
+
+def make_batch(cfg: ModelConfig, seed: int = 0):
+  rng = np.random.default_rng(seed)
+  batch = dict(
+      joint_pos=rng.normal(size=(B, cfg.joint_dim)).astype(np.float32),
+      object_state=rng.normal(size=(B, cfg.object_state_dim)).astype(np.float32),
+      actions=rng.normal(size=(B, cfg.chunk, cfg.action_dim)).astype(np.float32),
+      # the second sample's episode ends after 2 steps
+      action_mask=np.arange(cfg.chunk)[None] < np.array([cfg.chunk, 2])[:, None],
+      task_id=np.arange(B, dtype=np.int32))
+  if cfg.use_images:
+    for cam in cfg.cameras:
+      batch[f"{cam}_rgb"] = rng.integers(0, 256, (B, *cfg.image_size, 3), dtype=np.uint8)
+  return jax.tree.map(jnp.asarray, batch)
+
+
+def rngs(seed=0):
+  k1, k2 = jax.random.split(jax.random.key(seed))
+  return {"dropout": k1, "sample": k2}
+
+
+def random_params(module, *args, scale=0.2, seed=0):
+  """Parameters of `module` drawn on the host: shapes from tracing `init`,
+  values from numpy, so tests compile only the function they check."""
+  rng = np.random.default_rng(seed)
+  abstract = jax.eval_shape(module.init, jax.random.key(0), *args)
+  draw = lambda s: jnp.asarray(scale * rng.standard_normal(s.shape), s.dtype)
+  return jax.tree.map(draw, abstract)
+
+
+def shapes(tree):
+  return jax.tree.map(lambda x: (tuple(x.shape), jnp.dtype(x.dtype)), tree)
+
+
+# ---- presets -----------------------------------------------------------------
+def test_presets():
+  p, b, q = paper(), budget(), quick()
+  assert (p.hidden, p.heads, p.ff, p.enc_layers, p.dec_layers, p.latent_dim, p.chunk,
+          p.num_skills, p.backbone_width) == (512, 8, 3200, 4, 7, 32, 25, 4, 64)
+  assert p.use_images and b.use_images and not q.use_images
+  assert not p.decoder_first_layer_only
+  assert (b.hidden, b.ff, b.backbone_width) == (256, 1024, 32)
+  assert (q.hidden, q.heads, q.ff, q.enc_layers, q.dec_layers, q.cvae_enc_layers, q.num_skills) \
+      == (64, 4, 256, 2, 2, 1, 4)
+  assert dataclasses.replace(q, policy="act").policy == "act"
+  with pytest.raises(dataclasses.FrozenInstanceError):
+    q.hidden = 3
+  with pytest.raises(ValueError):
+    dataclasses.replace(q, policy="diffusion")
+
+
+# ---- shapes of every module (eval_shape: no compile) --------------------------
+def test_resnet18_feature_map():
+  for size, fmap in [((32, 32), (1, 1)), ((64, 64), (2, 2)), ((64, 96), (2, 3))]:
+    out = jax.eval_shape(lambda x: ResNet18(width=8).init_with_output(jax.random.key(0), x)[0],
+                         jax.ShapeDtypeStruct((3, *size, 3), jnp.uint8))
+    assert out.shape == (3, *fmap, 64) and out.dtype == jnp.float32
+  params = jax.eval_shape(ResNet18(width=8).init, jax.random.key(0),
+                          jnp.zeros((1, 32, 32, 3), jnp.uint8))
+  assert "batch_stats" not in params
+  assert sum(1 for k in params["params"] if "block" in k) == 8  # [2, 2, 2, 2]
+
+
+@pytest.mark.parametrize("images", [False, True])
+def test_act_halves_shapes(images):
+  cfg = tiny(images=images)
+  batch = make_batch(cfg)
+  n = num_tokens(cfg)
+  assert n == (2 + 2 * 1 * 1 if images else 3)
+  h = jax.eval_shape(lambda: Encoder(cfg).init_with_output(
+      jax.random.key(0), batch, jnp.zeros((B, cfg.latent_dim)))[0])
+  assert h.shape == (B, n, cfg.hidden)
+  mu, logvar = jax.eval_shape(lambda: CVAEEncoder(cfg).init_with_output(
+      jax.random.key(0), batch["joint_pos"], batch["actions"], batch["action_mask"])[0])
+  assert mu.shape == logvar.shape == (B, cfg.latent_dim)
+  chunk = jax.eval_shape(lambda: ActionHead(cfg).init_with_output(
+      jax.random.key(0), jnp.zeros((B, n, cfg.hidden)))[0])
+  assert chunk.shape == (B, cfg.chunk, cfg.action_dim) and chunk.dtype == jnp.float32
+
+
+@pytest.mark.parametrize("name", sorted(INTERACTORS))
+def test_plug_module_shapes(name):
+  cfg = tiny()
+  K, N, D = cfg.num_skills, 5, cfg.hidden
+  init = lambda m, *a, **kw: jax.eval_shape(
+      lambda: m.init_with_output(jax.random.key(0), *a, **kw)[0])
+  assert init(SkillLibrary(K, D)).shape == (K, D)
+  u = init(INTERACTORS[name](D, cfg.heads, cfg.ff), jnp.zeros((B, N, D)), jnp.zeros((B, K, D)))
+  assert u.shape == (B, K, N, D)
+  assert init(Router(K, D), jnp.zeros((B, N, D))).shape == (B, K)
+  post = jax.eval_shape(lambda: TrajectorySkillPosterior(D, 8, 16).init_with_output(
+      {"params": jax.random.key(0), **rngs()}, jnp.zeros((B, cfg.chunk, 7)),
+      jnp.ones((B, cfg.chunk), bool), jnp.zeros((K, D)), sample=True)[0])
+  assert shapes(post) == {"f_tau": ((B, D), jnp.float32), "mu": ((B, K, 8), jnp.float32),
+                          "logvar": ((B, K, 8), jnp.float32), "offset": ((B, K, D), jnp.float32),
+                          "traj_logits": ((B, K), jnp.float32)}
+
+
+def test_router_starts_uniform():
+  h = jax.random.normal(jax.random.key(1), (B, 5, 16))
+  probs, _ = Router(4, 16).init_with_output(jax.random.key(0), h)
+  np.testing.assert_allclose(probs, 0.25)
+
+
+def test_latents_start_at_the_prior():
+  cfg = tiny()
+  batch = make_batch(cfg)
+  init = lambda m, *a: jax.jit(lambda: m.init_with_output(
+      {"params": jax.random.key(0), **rngs()}, *a)[0], compiler_options=FAST_COMPILE)()
+  mu, logvar = init(CVAEEncoder(cfg), batch["joint_pos"], batch["actions"], batch["action_mask"])
+  post = init(TrajectorySkillPosterior(cfg.hidden, 8, 16), batch["actions"], batch["action_mask"],
+              jnp.ones((cfg.num_skills, cfg.hidden)))
+  for m, lv in ((mu, logvar), (post["mu"], post["logvar"])):
+    assert float(losses.kl_standard_normal(m, lv)) == 0.0
+
+
+@pytest.mark.parametrize("images", [False, True])
+@pytest.mark.parametrize("policy", ["act", "skillplug"])
+def test_policy_shapes_and_groups(policy, images):
+  cfg = tiny(policy, images)
+  model, batch = Policy(cfg), make_batch(cfg)
+  variables = jax.eval_shape(model.init, jax.random.key(0), batch)
+  expected = set(GROUPS) if policy == "skillplug" else {"encoder", "cvae", "action_head"}
+  assert set(variables) == {"params"} and param_groups(variables) == expected
+  assert ("backbone" in variables["params"]["encoder"]) == images
+  out = jax.eval_shape(lambda v: model.apply(v, batch, train=True, rngs=rngs()), variables)
+  K, z = cfg.num_skills, cfg.skill_latent_dim
+  want = {"pred_actions": (B, cfg.chunk, cfg.action_dim),
+          "cvae_mu": (B, cfg.latent_dim), "cvae_logvar": (B, cfg.latent_dim)}
+  if policy == "skillplug":
+    want.update(router_probs=(B, K), skill_features=(B, K, cfg.hidden), posterior_mu=(B, K, z),
+                posterior_logvar=(B, K, z), traj_logits=(B, K))
+  assert {k: v.shape for k, v in out.items()} == want
+  assert all(v.dtype == jnp.float32 for v in out.values())
+  # validation (train=False) needs no rng: latents at their means, no dropout
+  val = jax.eval_shape(lambda v: model.apply(v, batch, train=False), variables)
+  assert shapes(val) == shapes(out)
+  chunk, routing = jax.eval_shape(lambda v: model.apply(v, batch, method=Policy.predict), variables)
+  assert chunk.shape == (B, cfg.chunk, cfg.action_dim)
+  h = jax.eval_shape(lambda v: model.apply(v, batch, method=Policy.encode), variables)
+  assert h.shape == (B, num_tokens(cfg), cfg.hidden)
+  act = jax.eval_shape(lambda v, x: model.apply(v, x, method=Policy.act), variables, h)
+  assert act.shape == chunk.shape
+  assert (routing is None) == (policy == "act")
+  if routing is not None:
+    assert routing.shape == (B, cfg.num_skills)
+
+
+def test_bfloat16_compute_keeps_float32_params_and_outputs():
+  cfg = tiny(dtype="bfloat16")
+  model, batch = Policy(cfg), make_batch(cfg)
+  variables = jax.eval_shape(model.init, jax.random.key(0), batch)
+  assert {x.dtype for x in jax.tree.leaves(variables)} == {jnp.dtype(jnp.float32)}
+  out = jax.eval_shape(lambda v: model.apply(v, batch, train=True, rngs=rngs()), variables)
+  assert {x.dtype for x in jax.tree.leaves(out)} == {jnp.dtype(jnp.float32)}
+
+
+# ---- freezing -----------------------------------------------------------------
+def test_trainable_mask_marks_exactly_the_requested_groups():
+  cfg = tiny()
+  variables = jax.eval_shape(Policy(cfg).init, jax.random.key(0), make_batch(cfg))
+  trainable = {"router", "action_head"}
+  for tree in (variables, variables["params"]):
+    mask = trainable_mask(tree, trainable)
+    assert jax.tree.structure(mask) == jax.tree.structure(tree)
+    groups = mask["params"] if "params" in mask else mask
+    for name, sub in groups.items():
+      assert set(jax.tree.leaves(sub)) == {name in trainable}
+  with pytest.raises(ValueError, match="posteriors"):
+    trainable_mask(variables, {"posteriors"})
+
+
+def test_decoder_first_layer_only_reads_layer_one():
+  cfg = tiny(dec_layers=3)
+  memory = jax.random.normal(jax.random.key(1), (B, 4, cfg.hidden))
+  params = random_params(ActionHead(cfg), memory)
+  run = lambda c, p: jax.jit(ActionHead(c).apply, compiler_options=FAST_COMPILE)(p, memory)
+  full = run(cfg, params)
+  first = run(dataclasses.replace(cfg, decoder_first_layer_only=True), params)
+  # the same parameters with only the first layer kept, in a 1-layer decoder
+  one_layer = {"params": {k: v for k, v in params["params"].items()
+                          if k not in ("layer2", "layer3")}}
+  single = run(dataclasses.replace(cfg, dec_layers=1), one_layer)
+  np.testing.assert_allclose(first, single, rtol=1e-5, atol=1e-6)
+  assert not np.allclose(first, full, atol=1e-3)
+
+
+# ---- numerics on one tiny state-only SkillPlug model ----------------------------
+@pytest.fixture(scope="module")
+def tiny_model():
+  cfg = tiny()
+  model, batch = Policy(cfg), make_batch(cfg)
+  variables = random_params(model, batch)
+  forward = jax.jit(lambda v, b, r: model.apply(v, b, train=True, rngs=r),
+                    compiler_options=FAST_COMPILE)
+  predict = jax.jit(lambda v, o: model.apply(v, o, method=Policy.predict),
+                    compiler_options=FAST_COMPILE)
+  return cfg, model, batch, variables, forward, predict
+
+
+def test_forward_is_deterministic_given_rngs(tiny_model):
+  _, _, batch, variables, forward, _ = tiny_model
+  a, b = forward(variables, batch, rngs(0)), forward(variables, batch, rngs(0))
+  jax.tree.map(np.testing.assert_array_equal, a, b)
+  c = forward(variables, batch, rngs(1))
+  assert not np.allclose(a["pred_actions"], c["pred_actions"])
+  assert all(np.all(np.isfinite(x)) for x in jax.tree.leaves(a))
+  np.testing.assert_allclose(a["router_probs"].sum(-1), 1.0, rtol=1e-6)
+
+
+def test_predict_ignores_actions_and_posterior(tiny_model):
+  cfg, _, batch, variables, _, predict = tiny_model
+  chunk, routing = predict(variables, batch)
+  assert np.all(np.isfinite(chunk))
+  # other demonstrated actions and a NaN posterior and CVAE change nothing
+  poisoned = {"params": {k: (jax.tree.map(lambda x: jnp.full_like(x, jnp.nan), v)
+                             if k in ("posterior", "cvae") else v)
+                         for k, v in variables["params"].items()}}
+  other = dict(batch, actions=batch["actions"] * 5 + 1,
+               action_mask=jnp.zeros_like(batch["action_mask"]))
+  chunk2, routing2 = predict(poisoned, other)
+  np.testing.assert_array_equal(chunk, chunk2)
+  np.testing.assert_array_equal(routing, routing2)
+  # fixed-skill routing overrides the router
+  fixed = jnp.eye(cfg.num_skills)[0]
+  _, used = jax.jit(lambda v, o, r: Policy(cfg).apply(v, o, r, method=Policy.predict),
+                    compiler_options=FAST_COMPILE)(variables, batch, fixed)
+  np.testing.assert_array_equal(used, jnp.broadcast_to(fixed, (B, cfg.num_skills)))
+
+
+def _group_grads(model, variables, batch):
+  """Gradients of the whole loss and of L_BSA alone, for each parameter."""
+  def term(v, name):
+    loss, m = losses.total_loss(model.apply(v, batch, train=True, rngs=rngs()), batch)
+    return loss if name == "loss" else m[name]
+  return jax.jit(lambda v: (jax.grad(term)(v, "loss"), jax.grad(term)(v, "bsa")),
+                 compiler_options=FAST_COMPILE)(variables)
+
+
+def test_freezing_and_bsa_gradients(tiny_model):
+  _, model, batch, variables, _, _ = tiny_model
+  grads, bsa_grads = _group_grads(model, variables, batch)
+  # every group is wired into the loss
+  for name in GROUPS:
+    assert any(np.any(x != 0) for x in jax.tree.leaves(grads["params"][name])), name
+  # L_BSA reaches the skills and the posterior heads, never the router
+  assert all(np.all(x == 0) for x in jax.tree.leaves(bsa_grads["params"]["router"]))
+  assert any(np.any(x != 0) for x in jax.tree.leaves(bsa_grads["params"]["skills"]))
+  assert any(np.any(x != 0) for x in jax.tree.leaves(grads["params"]["router"]))
+
+  trainable = {"router", "action_head"}
+  opt = masked_optimizer(optax.adam(1e-2), variables, trainable)
+
+  def step(params, grads):
+    updates, _ = opt.update(grads, opt.init(params), params)
+    return optax.apply_updates(params, updates)
+
+  new = jax.jit(step, compiler_options=FAST_COMPILE)(variables, grads)
+  for name in param_groups(variables):
+    before, after = jax.tree.leaves(variables["params"][name]), jax.tree.leaves(new["params"][name])
+    if name in trainable:
+      assert any(np.any(a != b) for a, b in zip(after, before)), name
+    else:
+      assert all(np.array_equal(a, b) for a, b in zip(after, before)), name
+
+
+def test_image_policy_runs_and_losses_are_finite():
+  cfg = tiny("skillplug", images=True, enc_layers=1, dec_layers=1)
+  model, batch = Policy(cfg), make_batch(cfg)
+
+  step = jax.jit(lambda v: losses.total_loss(model.apply(v, batch, train=True, rngs=rngs()), batch),
+                 compiler_options=FAST_COMPILE)
+  loss, metrics = step(random_params(model, batch))
+  assert np.isfinite(loss) and all(np.isfinite(v) for v in metrics.values())
