@@ -13,7 +13,7 @@ OUT ?= results
 
 export MUJOCO_GL ?= egl
 
-.PHONY: install test quickstart experts demos bench-envs bench-loader scenes clean
+.PHONY: install test quickstart experts demos pretrain bench-envs bench-loader scenes clean
 
 install: $(VENV)/.installed
 
@@ -39,6 +39,13 @@ experts: install
 # Expert demonstrations as an RLDS dataset under $(OUT)/datasets (IMAGES=0: state only).
 demos: install
 	$(VENV)/bin/skillplug demos --taskset $(TASKSET) --demos $(DEMOS) --out $(OUT)/datasets $(if $(filter 0,$(IMAGES)),--state-only,)
+
+# Multi-task pretraining: generates the demos when missing, trains, prints the checkpoint path.
+POLICY ?= skillplug
+PRESET ?= quick
+SEED ?= 0
+pretrain: install
+	$(VENV)/bin/skillplug pretrain --taskset $(TASKSET) --policy $(POLICY) --preset $(PRESET) --seed $(SEED)
 
 bench-envs: install
 	mkdir -p $(OUT)

@@ -80,6 +80,22 @@ def cmd_demos(args) -> int:
   return 0
 
 
+def cmd_pretrain(args) -> int:
+  import jax
+
+  from skillplug_jax.train import config, loop
+
+  if args.distributed:  # several hosts: coordinator and process ids come from the cluster's env
+    jax.distributed.initialize()
+  cfg = config.preset(args.preset, policy=args.policy)
+  cfg = config.override(cfg, [f"taskset={args.taskset}", f"seed={args.seed}"] + list(args.set or []))
+  if args.workdir:
+    cfg = config.override(cfg, [f"workdir={args.workdir}"])
+  run = loop.train(cfg)
+  print(f"checkpoint: {run / 'checkpoints'} (config and normalisation statistics beside it in {run})")
+  return 0
+
+
 def _dir_mb(path) -> float:
   return sum(f.stat().st_size for f in path.rglob("*") if f.is_file()) / 2**20
 
@@ -108,6 +124,19 @@ def build_parser() -> argparse.ArgumentParser:
   d.add_argument("--batch", type=int, default=64, help="environments simulated at once")
   d.add_argument("--impl", default="warp", choices=("warp", "jax"), help="MJX implementation")
   d.set_defaults(fn=cmd_demos)
+
+  t = sub.add_parser("pretrain", help="train a multi-task policy (generates its demos when missing)",
+                     formatter_class=argparse.ArgumentDefaultsHelpFormatter)
+  t.add_argument("--taskset", default="discoverse7")
+  t.add_argument("--policy", default="skillplug", choices=("skillplug", "act"))
+  t.add_argument("--preset", default="quick", choices=("paper", "budget", "quick"),
+                 help="paper: the paper's protocol; budget: ~10 min of one GPU; quick: CPU minutes, state only")
+  t.add_argument("--seed", type=int, default=0, help="training seed (initialisation, batches, dropout)")
+  t.add_argument("--set", action="append", metavar="KEY=VALUE",
+                 help="override a config field, e.g. --set lr=3e-4 --set model.hidden=128 --set loss.sd=0.5")
+  t.add_argument("--workdir", default="", help="run directory (default results/runs/<taskset>_<policy>_<preset>_seed<seed>)")
+  t.add_argument("--distributed", action="store_true", help="call jax.distributed.initialize() (multi-host)")
+  t.set_defaults(fn=cmd_pretrain)
   return p
 
 

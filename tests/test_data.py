@@ -15,31 +15,10 @@ import envs
 from envs import rollout
 from skillplug_jax import cli
 from skillplug_jax.data import demos, loader, normalization, rlds
-from skillplug_jax.data.recording import Episode
 from skillplug_jax.data.rlds import DatasetError
+from synthetic import synthetic_episode, write_synthetic
 
 D = envs.OBJECT_STATE_DIM
-
-
-def synthetic_episode(rng, length, images=None, success=True):
-  obs = {"joint_pos": rng.normal(size=(length, 7)).astype(np.float32),
-         "object_state": rng.normal(size=(length, D)).astype(np.float32)}
-  if images is not None:
-    w, h = images
-    for cam in ("side", "wrist"):
-      obs[f"{cam}_rgb"] = rng.integers(0, 256, size=(length, h, w, 3), dtype=np.uint8)
-  return Episode(observation=obs, action=rng.normal(size=(length, 7)).astype(np.float32),
-                 success=success, nan=False)
-
-
-def write_synthetic(root: Path, name: str, spec: rlds.DatasetSpec, records: list, stats=True) -> Path:
-  """Write records the way `make_demos` does (build, stats, rename)."""
-  version_dir = rlds.write_dataset(root / f".{name}.building", spec, lambda: records, {"test": True})
-  if stats:
-    normalization.write_stats(version_dir, normalization.compute_stats(r.episode for r in records))
-  final = root / name
-  os.replace(version_dir, final)
-  return final
 
 
 @pytest.fixture(scope="module")
@@ -177,7 +156,8 @@ def test_batches_shard_over_four_devices(image_dataset):
         raise AssertionError("batch 6 over 4 devices accepted")
       print("OK")
   """)
-  env = dict(os.environ, XLA_FLAGS="--xla_force_host_platform_device_count=4", JAX_PLATFORMS="cpu")
+  env = dict(os.environ, JAX_PLATFORMS="cpu",
+             XLA_FLAGS=os.environ.get("XLA_FLAGS", "") + " --xla_force_host_platform_device_count=4")
   out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, timeout=300)
   assert out.returncode == 0 and "OK" in out.stdout, out.stderr[-3000:]
 

@@ -1,0 +1,125 @@
+"""Training configuration: a frozen dataclass, three presets, command-line overrides.
+
+    cfg = preset("quick", policy="act")
+    cfg = override(cfg, ["lr=3e-4", "model.hidden=128", "loss.sd=0.5"])
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import typing
+from pathlib import Path
+
+from skillplug_jax.losses import LossWeights
+from skillplug_jax.model import config as model_config
+from skillplug_jax.model.config import ModelConfig
+
+
+@dataclasses.dataclass(frozen=True)
+class TrainConfig:
+  preset: str
+  model: ModelConfig
+  loss: LossWeights = LossWeights()
+  # data: the dataset `skillplug demos` writes for these fields
+  taskset: str = "discoverse7"
+  demos: int = 300  # per task; images follow model.use_images and model.image_size
+  data_seed: int = 0
+  data_dir: str = "results/datasets"
+  # optimisation (ACT: AdamW, lr 1e-5 backbone / 1e-4 rest, weight decay 1e-4)
+  batch_size: int = 16
+  lr: float = 1e-4
+  weight_decay: float = 1e-4
+  grad_clip: float = 1.0  # global-norm clipping
+  warmup_steps: int = 0
+  epochs: float = 6000.0  # ACT epochs: one random timestep per episode each
+  max_steps: int = 0  # > 0: train this many steps instead of `epochs`
+  seed: int = 0
+  # which parameter groups train (empty: all); few-shot sets router/action_head
+  trainable: tuple[str, ...] = ()
+  init_from: str = ""  # checkpoint directory whose parameters start this run
+  # bookkeeping
+  workdir: str = ""  # default: results/runs/<taskset>_<policy>_<preset>_seed<seed>
+  log_every: int = 50
+  ckpt_every: int = 1000
+  keep_checkpoints: int = 2
+
+  @property
+  def run_dir(self) -> Path:
+    if self.workdir:
+      return Path(self.workdir)
+    return Path("results/runs") / f"{self.taskset}_{self.model.policy}_{self.preset}_seed{self.seed}"
+
+  def num_steps(self, num_episodes: int) -> int:
+    if self.max_steps > 0:
+      return self.max_steps
+    return max(1, int(round(self.epochs * num_episodes / self.batch_size)))
+
+
+def preset(name: str, policy: str = "skillplug") -> TrainConfig:
+  """paper: the paper's protocol. budget: about 10 minutes of one H100 (not
+  yet measured on one). quick: minutes on a 2-core CPU, state-only."""
+  if name == "paper":
+    return TrainConfig(preset=name, model=dataclasses.replace(model_config.paper(), policy=policy))
+  if name == "budget":
+    return TrainConfig(preset=name, model=dataclasses.replace(model_config.budget(), policy=policy),
+                       demos=100, batch_size=64, lr=3e-4, warmup_steps=500, max_steps=20_000,
+                       ckpt_every=2000)
+  if name == "quick":
+    return TrainConfig(preset=name, model=dataclasses.replace(model_config.quick(), policy=policy),
+                       demos=10, batch_size=32, lr=1e-3, warmup_steps=100, max_steps=1500,
+                       log_every=50, ckpt_every=500, weight_decay=1e-4)
+  raise ValueError(f"unknown preset {name!r}; valid presets: paper, budget, quick")
+
+
+def _parse(value: str, typ):
+  origin = typing.get_origin(typ)
+  if typ is bool:
+    if value.lower() in ("1", "true", "yes"):
+      return True
+    if value.lower() in ("0", "false", "no"):
+      return False
+    raise ValueError(f"not a boolean: {value!r}")
+  if origin is tuple:
+    args = typing.get_args(typ)
+    items = [v for v in value.split(",") if v]
+    return tuple(_parse(v, args[0]) for v in items)
+  if typ in (int, float, str):
+    return typ(value)
+  raise ValueError(f"cannot set a field of type {typ}")
+
+
+def override(cfg, assignments: typing.Iterable[str]):
+  """Apply `key=value` (dotted for nested dataclasses: model.hidden=128)."""
+  for item in assignments:
+    if "=" not in item:
+      raise ValueError(f"override {item!r} is not key=value")
+    key, value = item.split("=", 1)
+    cfg = _set(cfg, key.strip().split("."), value.strip(), key)
+  return cfg
+
+
+def _set(obj, path, value, full_key):
+  hints = typing.get_type_hints(type(obj))
+  name = path[0]
+  if name not in hints:
+    valid = ", ".join(f.name for f in dataclasses.fields(obj))
+    raise ValueError(f"unknown setting {full_key!r}; {type(obj).__name__} has: {valid}")
+  if len(path) > 1:
+    return dataclasses.replace(obj, **{name: _set(getattr(obj, name), path[1:], value, full_key)})
+  try:
+    parsed = _parse(value, hints[name])
+  except ValueError as e:
+    raise ValueError(f"{full_key}={value!r}: {e}") from e
+  return dataclasses.replace(obj, **{name: parsed})
+
+
+def to_dict(cfg) -> dict:
+  return dataclasses.asdict(cfg)
+
+
+def from_dict(d: dict) -> TrainConfig:
+  d = dict(d)
+  model = ModelConfig(**{k: tuple(v) if isinstance(v, list) else v for k, v in d.pop("model").items()})
+  loss = LossWeights(**d.pop("loss"))
+  d = {k: tuple(v) if isinstance(v, list) else v for k, v in d.items()}
+  return TrainConfig(model=model, loss=loss, **d)

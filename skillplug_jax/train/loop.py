@@ -1,0 +1,208 @@
+"""The training loop, top to bottom: data, model, optimiser, checkpoints, steps.
+
+One process drives every local device: parameters are replicated, the batch
+is split over a 1-D 'data' mesh, and XLA inserts the gradient all-reduce
+(several hosts: call `jax.distributed.initialize()` first; the mesh then
+spans every process's devices). A step's randomness is fold_in(seed, step)
+and the loader's batch is a function of (seed, step), so a run resumed from
+its last checkpoint continues exactly as if it had not been stopped.
+"""
+
+from __future__ import annotations
+
+import math
+import sys
+import time
+from pathlib import Path
+from typing import Any, NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optax
+from jax.sharding import Mesh, NamedSharding, PartitionSpec
+from tqdm import tqdm
+
+import envs
+from skillplug_jax import losses
+from skillplug_jax.data import demos as demo_data
+from skillplug_jax.data import loader as data_loader
+from skillplug_jax.model import freeze
+from skillplug_jax.model.policy import Policy
+from skillplug_jax.train import checkpoint
+from skillplug_jax.train.config import TrainConfig
+from skillplug_jax.train.scalars import ScalarLog
+
+
+class TrainState(NamedTuple):
+  step: jax.Array
+  params: Any
+  opt_state: Any
+
+
+class TrainingError(RuntimeError):
+  """Training cannot go on (non-finite loss); checkpoints already written are kept."""
+
+
+def dataset_config(cfg: TrainConfig) -> demo_data.DemoConfig:
+  h, w = cfg.model.image_size
+  return demo_data.DemoConfig(taskset=cfg.taskset, demos=cfg.demos, images=cfg.model.use_images,
+                              image_size=(w, h), seed=cfg.data_seed)
+
+
+def load_data(cfg: TrainConfig, generate: bool = True, progress: bool = True) -> data_loader.Demonstrations:
+  """The run's demonstrations; generated first when missing and `generate`."""
+  dcfg = dataset_config(cfg)
+  path = demo_data.dataset_path(dcfg, cfg.data_dir)
+  if not path.exists() and generate:
+    demo_data.make_demos(dcfg, cfg.data_dir, progress=progress)
+  h, w = cfg.model.image_size
+  return data_loader.load_demonstrations(path, tasks=dcfg.tasks, images=cfg.model.use_images,
+                                         image_size=(w, h))
+
+
+def optimizer(cfg: TrainConfig, params) -> optax.GradientTransformation:
+  """AdamW after global-norm clipping; frozen groups get zero updates (optax mask)."""
+  lr = optax.join_schedules(
+      [optax.linear_schedule(0.0, cfg.lr, max(cfg.warmup_steps, 1)), optax.constant_schedule(cfg.lr)],
+      [max(cfg.warmup_steps, 1)]) if cfg.warmup_steps > 0 else cfg.lr
+  tx = optax.chain(optax.clip_by_global_norm(cfg.grad_clip),
+                   optax.adamw(lr, weight_decay=cfg.weight_decay))
+  if cfg.trainable:
+    tx = freeze.masked_optimizer(tx, params, cfg.trainable)
+  return tx
+
+
+def example_batch(cfg: TrainConfig, batch_size: int) -> dict:
+  m = cfg.model
+  b = {"joint_pos": jnp.zeros((batch_size, m.joint_dim)),
+       "object_state": jnp.zeros((batch_size, envs.OBJECT_STATE_DIM)),
+       "actions": jnp.zeros((batch_size, m.chunk, m.action_dim)),
+       "action_mask": jnp.ones((batch_size, m.chunk), bool),
+       "task_id": jnp.zeros((batch_size,), jnp.int32)}
+  if m.use_images:
+    for cam in m.cameras:
+      b[f"{cam}_rgb"] = jnp.zeros((batch_size, *m.image_size, 3), jnp.uint8)
+  return b
+
+
+def init_params(cfg: TrainConfig, key: jax.Array):
+  k_params, k_drop, k_sample = jax.random.split(key, 3)
+  variables = Policy(cfg.model).init({"params": k_params, "dropout": k_drop, "sample": k_sample},
+                                     example_batch(cfg, 2), train=True)
+  return variables["params"]
+
+
+def make_train_step(cfg: TrainConfig, tx: optax.GradientTransformation, key: jax.Array):
+  policy = Policy(cfg.model)
+
+  def loss_fn(params, batch, step):
+    k = jax.random.fold_in(key, step)
+    k_drop, k_sample = jax.random.split(k)
+    out = policy.apply({"params": params}, batch, train=True, rngs={"dropout": k_drop, "sample": k_sample})
+    return losses.total_loss(out, batch, cfg.loss)
+
+  def train_step(state: TrainState, batch):
+    (_, metrics), grads = jax.value_and_grad(loss_fn, has_aux=True)(state.params, batch, state.step)
+    updates, opt_state = tx.update(grads, state.opt_state, state.params)
+    params = optax.apply_updates(state.params, updates)
+    metrics["grad_norm"] = optax.global_norm(grads)
+    return TrainState(state.step + 1, params, opt_state), metrics
+
+  return train_step
+
+
+def load_params(run_dir: str | Path, like=None):
+  """Parameters of a run's latest checkpoint (shapes checked against `like` if given)."""
+  run_dir = Path(run_dir)
+  cfg = checkpoint.read_config(run_dir)
+  mngr = checkpoint.manager(run_dir)
+  step = mngr.latest_step()
+  if step is None:
+    raise checkpoint.CheckpointError(f"{run_dir} has no checkpoint")
+  params = init_params(cfg, jax.random.PRNGKey(0)) if like is None else like
+  tx = optimizer(cfg, params)
+  target = TrainState(jnp.zeros((), jnp.int32), params, tx.init(params))
+  state = checkpoint.restore(mngr, step, target)
+  mngr.close()
+  return cfg, state.params, int(state.step)
+
+
+def train(cfg: TrainConfig, progress: bool = True, stop_after: int | None = None) -> Path:
+  """Train (or resume) `cfg`; return the run directory.
+
+  stop_after: return after this many steps of this call, as a kill would
+  (tests use it to check that resuming is exact).
+  """
+  run_dir = cfg.run_dir
+  data = load_data(cfg, progress=progress)
+  n_dev = jax.device_count()
+  mesh = Mesh(np.asarray(jax.devices()), ("data",))
+  replicated = NamedSharding(mesh, PartitionSpec())
+  loader = data_loader.ChunkLoader(data, cfg.batch_size, chunk=cfg.model.chunk, seed=cfg.seed,
+                                   images=cfg.model.use_images,
+                                   sharding=NamedSharding(mesh, PartitionSpec("data")))
+  total = cfg.num_steps(data.num_episodes)
+
+  key = jax.random.PRNGKey(cfg.seed)
+  init_key, step_key = jax.random.split(key)
+  params = init_params(cfg, init_key)
+  if cfg.init_from:  # few-shot: start from a multi-task run's parameters
+    src_cfg, params, src_step = load_params(cfg.init_from, like=params)
+    diffs = checkpoint.config_differences(src_cfg.model, cfg.model)
+    if diffs:
+      raise checkpoint.CheckpointError(f"{cfg.init_from} has a different model: {'; '.join(diffs)}")
+  tx = optimizer(cfg, params)
+  state = TrainState(jnp.zeros((), jnp.int32), params, tx.init(params))
+  state = jax.device_put(state, replicated)
+
+  mngr = checkpoint.manager(run_dir, cfg.keep_checkpoints)
+  start = mngr.latest_step()
+  if start is not None:
+    checkpoint.check_resumable(run_dir, cfg)
+    state = checkpoint.restore(mngr, start, state)
+  start = start or 0
+  checkpoint.write_run_files(run_dir, cfg, data.stats)
+
+  step_fn = jax.jit(make_train_step(cfg, tx, step_key), donate_argnums=0,
+                    out_shardings=(replicated, replicated))
+  log = ScalarLog(run_dir, resume_step=start)
+  end = total if stop_after is None else min(total, start + stop_after)
+  bar = tqdm(total=total, initial=start, desc=f"train {cfg.model.policy}", unit="step", file=sys.stderr,
+             disable=not progress, dynamic_ncols=True)
+  window, t_window, wait0, last_loss = [], time.perf_counter(), loader.wait_s, math.nan
+  try:
+    for step, batch in zip(range(start, end), loader.iterate(start_step=start, num_steps=end - start)):
+      state, metrics = step_fn(state, batch)
+      window.append(metrics)
+      done = step + 1
+      if done % cfg.log_every == 0 or done == end or done % cfg.ckpt_every == 0:
+        means = {k: float(np.mean([float(m[k]) for m in window])) for k in window[0]}
+        if not all(math.isfinite(v) for v in means.values()):
+          bad = {k: v for k, v in means.items() if not math.isfinite(v)}
+          raise TrainingError(
+              f"non-finite loss between steps {done - len(window)} and {done}: {bad}; the last good "
+              f"checkpoint (step {mngr.latest_step()}) in {run_dir / 'checkpoints'} is kept")
+        dt = time.perf_counter() - t_window
+        scalars = {f"loss/{k}": v for k, v in means.items() if k != "grad_norm"}
+        scalars.update({"train/grad_norm": means["grad_norm"],
+                        "train/epoch": done * cfg.batch_size / data.num_episodes,
+                        "train/steps_per_s": len(window) / dt,
+                        "train/data_wait_frac": (loader.wait_s - wait0) / dt})
+        log.write(done, scalars)
+        last_loss = means["loss"]
+        bar.set_postfix(loss=f"{last_loss:.4f}", epoch=f"{scalars['train/epoch']:.1f}")
+        window, t_window, wait0 = [], time.perf_counter(), loader.wait_s
+      if done % cfg.ckpt_every == 0 or done == total:
+        checkpoint.save(mngr, done, state)
+      bar.update(1)
+  finally:
+    bar.close()
+    log.close()
+    mngr.wait_until_finished()
+    mngr.close()
+  if progress:
+    print(f"run {run_dir}: step {int(state.step)}/{total} on {n_dev} device(s), last loss {last_loss:.4f}; "
+          f"checkpoints in {run_dir / 'checkpoints'}", file=sys.stderr)
+  return run_dir
+

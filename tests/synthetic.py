@@ -1,0 +1,33 @@
+"""Synthetic demonstration datasets for tests: random episodes written like `make_demos` writes."""
+
+import os
+from pathlib import Path
+
+import numpy as np
+
+import envs
+from skillplug_jax.data import normalization, rlds
+from skillplug_jax.data.recording import Episode
+
+D = envs.OBJECT_STATE_DIM
+
+
+def synthetic_episode(rng, length, images=None, success=True):
+  obs = {"joint_pos": rng.normal(size=(length, 7)).astype(np.float32),
+         "object_state": rng.normal(size=(length, D)).astype(np.float32)}
+  if images is not None:
+    w, h = images
+    for cam in ("side", "wrist"):
+      obs[f"{cam}_rgb"] = rng.integers(0, 256, size=(length, h, w, 3), dtype=np.uint8)
+  return Episode(observation=obs, action=rng.normal(size=(length, 7)).astype(np.float32),
+                 success=success, nan=False)
+
+
+def write_synthetic(root: Path, name: str, spec: rlds.DatasetSpec, records: list, stats=True) -> Path:
+  """Write records the way `make_demos` does (build, stats, rename)."""
+  version_dir = rlds.write_dataset(root / f".{name}.building", spec, lambda: records, {"test": True})
+  if stats:
+    normalization.write_stats(version_dir, normalization.compute_stats(r.episode for r in records))
+  final = root / name
+  os.replace(version_dir, final)
+  return final
