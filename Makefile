@@ -13,7 +13,7 @@ OUT ?= results
 
 export MUJOCO_GL ?= egl
 
-.PHONY: install test quickstart experts demos pretrain bench-envs bench-loader scenes clean
+.PHONY: install test quickstart experts demos pretrain bench-envs bench-loader bench-train scenes clean
 
 install: $(VENV)/.installed
 
@@ -53,6 +53,9 @@ bench-envs: install
 
 bench-loader: install
 	$(PY) -m experiments.bench_loader --dataset $(DATASET) --out $(OUT)/bench_loader.json
+
+bench-train: install
+	$(PY) -m experiments.bench_train --out $(OUT)/bench_train.json
 
 scenes: install
 	$(PY) -m experiments.scene_pictures --out docs/scenes
