@@ -96,6 +96,35 @@ def cmd_pretrain(args) -> int:
   return 0
 
 
+def cmd_eval(args) -> int:
+  from pathlib import Path
+
+  import envs
+  from skillplug_jax.evaluate import protocol, tables
+
+  runs = [r for part in args.runs for r in part.split(",") if r]
+  tasks = [n for part in args.taskset.split(",") for n in envs.taskset(part)]
+  out = protocol.evaluate_runs(runs, tasks, args.trials, seed=args.seed, batch=args.batch,
+                               query_every=args.query_every)
+  md = tables.markdown(out["table"])
+  print(f"\nSuccess rate (%), {args.trials} trials per task (seed {args.seed}); "
+        "mean±SE over training seeds where there are several:\n")
+  print(md)
+  print("\nmean policy queries per successful episode: "
+        + ", ".join(f"{k}: {v:.1f}" if v else f"{k}: -" for k, v in out["mean_queries_per_success"].items()))
+  if args.out:
+    from skillplug_jax.data.rlds import write_json_atomic
+    base = Path(args.out)
+    base.parent.mkdir(parents=True, exist_ok=True)
+    write_json_atomic(base.with_suffix(".json"), out)
+    for suffix, text in ((".md", md + "\n"), (".csv", tables.csv(out["table"]))):
+      tmp = base.with_suffix(suffix + ".tmp")
+      tmp.write_text(text)
+      os.replace(tmp, base.with_suffix(suffix))
+    print(f"wrote {base.with_suffix('.json')}, .md, .csv")
+  return 0
+
+
 def _dir_mb(path) -> float:
   return sum(f.stat().st_size for f in path.rglob("*") if f.is_file()) / 2**20
 
@@ -137,20 +166,36 @@ def build_parser() -> argparse.ArgumentParser:
   t.add_argument("--workdir", default="", help="run directory (default results/runs/<taskset>_<policy>_<preset>_seed<seed>)")
   t.add_argument("--distributed", action="store_true", help="call jax.distributed.initialize() (multi-host)")
   t.set_defaults(fn=cmd_pretrain)
+
+  v = sub.add_parser("eval", help="closed-loop success rates of trained policies (paired trials)",
+                     formatter_class=argparse.ArgumentDefaultsHelpFormatter)
+  v.add_argument("--runs", nargs="+", required=True,
+                 help="run directories (one per training seed; ACT and SkillPlug runs may be mixed)")
+  v.add_argument("--taskset", default="discoverse7")
+  v.add_argument("--trials", type=int, default=50, help="seeded episodes per task")
+  v.add_argument("--seed", type=int, default=1000, help="trial i starts from reset_keys(seed)[i] for every policy")
+  v.add_argument("--batch", type=int, default=50, help="environments simulated at once")
+  v.add_argument("--query-every", type=int, default=1,
+                 help="1: query every step with temporal ensembling; n > 1: open-loop chunks of n steps")
+  v.add_argument("--out", default="", help="write OUT.json, OUT.md and OUT.csv")
+  v.set_defaults(fn=cmd_eval)
   return p
 
 
 def main(argv=None) -> int:
   args = build_parser().parse_args(argv)
-  for flag in ("episodes", "demos", "batch"):
+  for flag in ("episodes", "demos", "batch", "trials"):
     if getattr(args, flag, 1) < 1:
       raise SystemExit(f"skillplug: --{flag} must be >= 1")
   _quiet_warp()
   try:
     return args.fn(args)
-  except ValueError as e:  # bad names, shapes: one clear line, no traceback
+  except ValueError as e:  # bad names, shapes, datasets, checkpoints: one clear line
     print(f"skillplug: error: {e}", file=sys.stderr)
     return 2
+  except RuntimeError as e:  # non-finite loss, experts that cannot succeed
+    print(f"skillplug: error: {e}", file=sys.stderr)
+    return 1
 
 
 if __name__ == "__main__":

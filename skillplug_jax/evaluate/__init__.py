@@ -1,0 +1,1 @@
+"""Evaluation: closed-loop batched rollouts, policy controllers, success tables."""

@@ -1,0 +1,105 @@
+"""A trained policy as an evaluation controller: normalisation, chunking, temporal ensembling.
+
+Temporal ensembling (ACT): the policy is queried every step; the action at t
+averages every earlier chunk's prediction for t, weighted exp(-k i) with i = 0
+for the oldest prediction. A ring buffer holds the last `chunk` chunks
+([B, chunk, chunk, A]: row j is the chunk predicted j steps ago), so the
+cost is constant in the episode length. Without ensembling the policy is
+queried every `query_every` steps and its chunk runs open loop in between.
+"""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+
+import envs
+from skillplug_jax.evaluate.rollout import Controller
+from skillplug_jax.model.config import ModelConfig
+from skillplug_jax.model.policy import Policy
+
+
+def temporal_ensemble(buf, pred, t, k: float = 0.01):
+  """Push chunk `pred` [B, C, A] (made at step t) and return (action at t, new buffer).
+
+  buf [B, C, C, A]: row j is the chunk predicted j steps ago. The action
+  averages row j's entry j over the rows that exist (j <= t), weighted
+  exp(-k i) with i = 0 for the oldest, as ACT does.
+  """
+  chunk = pred.shape[1]
+  buf = jnp.concatenate([pred[:, None], buf[:, :-1]], axis=1)
+  ages = jnp.arange(chunk)
+  candidates = buf[:, ages, ages]  # [B, C, A]: the chunk from j steps ago, its entry for now
+  n = jnp.minimum(t + 1, chunk)
+  w = jnp.where(ages < n, jnp.exp(-k * (n - 1 - ages)), 0.0)  # oldest (age n-1): exp(0)
+  return jnp.einsum("j,bja->ba", w, candidates) / w.sum(), buf
+
+
+def policy_controller(model: ModelConfig, params, stats: dict, *, query_every: int = 1,
+                      ensemble: bool | None = None, ensemble_k: float = 0.01,
+                      routing=None, name: str = "") -> Controller:
+  """routing: fixed weights ([K]) replace the router's (fixed- and mixed-skill rollouts)."""
+  if query_every < 1 or query_every > model.chunk:
+    raise ValueError(f"query_every must be in 1..{model.chunk} (the chunk size), got {query_every}")
+  temporal = (query_every == 1) if ensemble is None else ensemble
+  if temporal and query_every != 1:
+    raise ValueError("temporal ensembling queries the policy every step (query_every=1)")
+  policy = Policy(model)
+  chunk, adim = model.chunk, model.action_dim
+  a_mean, a_std = (jnp.asarray(stats["action"][k], jnp.float32) for k in ("mean", "std"))
+  j_mean, j_std = (jnp.asarray(stats["joint_pos"][k], jnp.float32) for k in ("mean", "std"))
+  fixed = None if routing is None else jnp.asarray(routing, jnp.float32)
+
+  def predict(state):
+    obs = state.obs
+    x = {"joint_pos": (obs["joint_pos"] - j_mean) / j_std,
+         "object_state": envs.padded_object_state(obs["object_state"])}
+    if model.use_images:
+      for cam in model.cameras:
+        x[f"{cam}_rgb"] = obs[f"{cam}_rgb"]
+    pred, r = policy.apply({"params": params}, x, fixed, method=Policy.predict)
+    return pred * a_std + a_mean, r
+
+
+  if temporal:
+    def init(state):
+      b = state.obs["joint_pos"].shape[0]
+      return jnp.zeros((b, chunk, chunk, adim), jnp.float32)
+
+    def act(buf, state, t):
+      pred, r = predict(state)
+      action, buf = temporal_ensemble(buf, pred, t, ensemble_k)
+      return action, buf, ({} if r is None else {"routing": r})
+
+    return Controller(init, act, model.num_skills if model.is_skillplug else 0, name)
+
+  def init(state):
+    b = state.obs["joint_pos"].shape[0]
+    return jnp.zeros((b, chunk, adim), jnp.float32), jnp.zeros((b, model.num_skills), jnp.float32)
+
+  def act(cs, state, t):
+    plan, last_r = cs
+    query = t % query_every == 0
+    b = plan.shape[0]
+
+    def ask(_):
+      pred, r = predict(state)
+      return pred, (last_r if r is None else r)
+
+    plan, r = jax.lax.cond(query, ask, lambda _: (plan, last_r), None)
+    action = jax.lax.dynamic_index_in_dim(plan, t % query_every, axis=1, keepdims=False)
+    info = {"queried": jnp.full((b,), query)}
+    if model.is_skillplug:
+      info["routing"] = r
+    return action, (plan, r), info
+
+  return Controller(init, act, model.num_skills if model.is_skillplug else 0, name)
+
+
+def load_controller(run_dir, **kwargs) -> tuple[Controller, object]:
+  """The latest checkpoint of a training run as a controller (and its TrainConfig)."""
+  from skillplug_jax.train import checkpoint, loop
+  cfg, params, _ = loop.load_params(run_dir)
+  stats = checkpoint.read_stats(run_dir)
+  return policy_controller(cfg.model, params, stats, **kwargs), cfg
+
