@@ -13,7 +13,7 @@ OUT ?= results
 
 export MUJOCO_GL ?= egl
 
-.PHONY: install test quickstart experts demos pretrain bench-envs bench-loader bench-train scenes clean
+.PHONY: install test quickstart experts demos pretrain fewshot eval bench-envs bench-loader bench-train scenes clean
 
 install: $(VENV)/.installed
 
@@ -46,6 +46,15 @@ PRESET ?= quick
 SEED ?= 0
 pretrain: install
 	$(VENV)/bin/skillplug pretrain --taskset $(TASKSET) --policy $(POLICY) --preset $(PRESET) --seed $(SEED)
+
+# Few-shot: fine-tune FROM (a pretrain run directory) on each unseen task, then evaluate it.
+TRIALS ?= 50
+fewshot: install
+	$(VENV)/bin/skillplug fewshot --from $(FROM) --taskset $(TASKSET) --demos $(DEMOS) --trials $(TRIALS) --out $(OUT)/fewshot_$(notdir $(FROM))
+
+# Closed-loop evaluation of one or more runs (RUNS: space-separated run directories).
+eval: install
+	$(VENV)/bin/skillplug eval --runs $(RUNS) --taskset $(TASKSET) --trials $(TRIALS) --out $(OUT)/eval_$(TASKSET)
 
 bench-envs: install
 	mkdir -p $(OUT)

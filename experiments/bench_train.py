@@ -36,7 +36,7 @@ def bench_one(preset: str, policy: str, batch: int, steps: int) -> dict:
   tx = loop.optimizer(cfg, params)
   state = jax.device_put(loop.TrainState(jnp.zeros((), jnp.int32), params, tx.init(params)), repl)
   rng = np.random.default_rng(0)
-  b = {k: np.asarray(v) for k, v in loop.example_batch(cfg, batch).items()}
+  b = {k: np.array(v) for k, v in loop.example_batch(cfg, batch).items()}
   for k, v in b.items():
     if v.dtype == np.float32:
       b[k] = rng.normal(size=v.shape).astype(np.float32)

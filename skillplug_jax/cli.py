@@ -125,6 +125,28 @@ def cmd_eval(args) -> int:
   return 0
 
 
+def cmd_fewshot(args) -> int:
+  from pathlib import Path
+
+  from skillplug_jax import fewshot
+  from skillplug_jax.data.rlds import write_json_atomic
+  from skillplug_jax.evaluate import tables
+
+  runs = [r for part in args.runs for r in part.split(",") if r]
+  out = fewshot.adapt_and_evaluate(runs, args.taskset, args.demos, args.trials, args.seed, args.batch,
+                                   steps=args.steps)
+  md = tables.markdown(out["table"])
+  print(f"\nFew-shot success rate (%), {args.demos} demos per task, {args.trials} trials per task:\n")
+  print(md)
+  if args.out:
+    base = Path(args.out)
+    base.parent.mkdir(parents=True, exist_ok=True)
+    write_json_atomic(base.with_suffix(".json"), out)
+    base.with_suffix(".md").write_text(md + "\n")
+    print(f"wrote {base.with_suffix('.json')}, .md")
+  return 0
+
+
 def _dir_mb(path) -> float:
   return sum(f.stat().st_size for f in path.rglob("*") if f.is_file()) / 2**20
 
@@ -179,6 +201,20 @@ def build_parser() -> argparse.ArgumentParser:
                  help="1: query every step with temporal ensembling; n > 1: open-loop chunks of n steps")
   v.add_argument("--out", default="", help="write OUT.json, OUT.md and OUT.csv")
   v.set_defaults(fn=cmd_eval)
+
+  f = sub.add_parser("fewshot", help="adapt multi-task runs to unseen tasks from a few demos, then evaluate",
+                     formatter_class=argparse.ArgumentDefaultsHelpFormatter)
+  f.add_argument("--from", dest="runs", nargs="+", required=True,
+                 help="multi-task run directories (one per training seed)")
+  f.add_argument("--taskset", default="discoverse_fewshot4")
+  f.add_argument("--demos", type=int, default=10, help="demonstrations per unseen task")
+  f.add_argument("--steps", type=int, default=None,
+                 help="fine-tuning steps (default per preset: quick 500, budget 2000, paper 6000 epochs)")
+  f.add_argument("--trials", type=int, default=50)
+  f.add_argument("--seed", type=int, default=1000)
+  f.add_argument("--batch", type=int, default=50)
+  f.add_argument("--out", default="", help="write OUT.json and OUT.md")
+  f.set_defaults(fn=cmd_fewshot)
   return p
 
 

@@ -9,7 +9,7 @@ import jax
 import numpy as np
 import pytest
 
-from skillplug_jax import losses
+from skillplug_jax import fewshot, losses
 from skillplug_jax.data import rlds
 from skillplug_jax.train import checkpoint, config, loop
 from skillplug_jax.train.scalars import read_metrics
@@ -100,6 +100,18 @@ def test_frozen_groups_stay_bit_identical(data_dir, tmp_path):
   for group in before:
     same = all(np.array_equal(x, y) for x, y in zip(leaves(before[group]), leaves(after[group])))
     assert same == (group not in ("router", "action_head")), group
+  # the frozen encoder keeps reading inputs normalised with the source run's statistics
+  assert (few.run_dir / "norm_stats.json").read_text() == (source / "norm_stats.json").read_text()
+
+
+def test_fewshot_configs_follow_the_paper(tmp_path):
+  for policy, trainable in (("skillplug", ("action_head", "router")), ("act", ("action_head",))):
+    src = config.preset("quick", policy)
+    cfg = fewshot.fewshot_config(src, tmp_path / "src", "mouse_push", "discoverse_fewshot4", 10)
+    assert cfg.trainable == trainable
+    assert (cfg.taskset, cfg.data_taskset, cfg.demos) == ("mouse_push", "discoverse_fewshot4", 10)
+    assert cfg.init_from == str(tmp_path / "src") and cfg.max_steps == fewshot.FEWSHOT_STEPS["quick"]
+    assert cfg.model == src.model and cfg.run_dir == tmp_path / "src_fewshot" / "mouse_push"
 
 
 def test_nan_loss_stops_and_keeps_checkpoint(data_dir, tmp_path, monkeypatch):

@@ -176,6 +176,10 @@ class ChunkLoader:
     ep, t = self.indices(step)
     if local:
       ep, t = ep[self._local], t[self._local]
+    return self.gather(ep, t)
+
+  def gather(self, ep: np.ndarray, t: np.ndarray) -> dict:
+    """The samples at (episode, timestep) pairs, as a numpy batch."""
     d = self.demos
     stats = d.stats
     row = d.start[ep] + t

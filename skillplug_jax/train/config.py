@@ -21,7 +21,8 @@ class TrainConfig:
   model: ModelConfig
   loss: LossWeights = LossWeights()
   # data: the dataset `skillplug demos` writes for these fields
-  taskset: str = "discoverse7"
+  taskset: str = "discoverse7"  # the tasks trained on
+  data_taskset: str = ""  # the dataset they are read from (default: taskset); few-shot reads one task of many
   demos: int = 300  # per task; images follow model.use_images and model.image_size
   data_seed: int = 0
   data_dir: str = "results/datasets"

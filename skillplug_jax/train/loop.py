@@ -10,6 +10,7 @@ its last checkpoint continues exactly as if it had not been stopped.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import sys
 import time
@@ -46,8 +47,8 @@ class TrainingError(RuntimeError):
 
 def dataset_config(cfg: TrainConfig) -> demo_data.DemoConfig:
   h, w = cfg.model.image_size
-  return demo_data.DemoConfig(taskset=cfg.taskset, demos=cfg.demos, images=cfg.model.use_images,
-                              image_size=(w, h), seed=cfg.data_seed)
+  return demo_data.DemoConfig(taskset=cfg.data_taskset or cfg.taskset, demos=cfg.demos,
+                              images=cfg.model.use_images, image_size=(w, h), seed=cfg.data_seed)
 
 
 def load_data(cfg: TrainConfig, generate: bool = True, progress: bool = True) -> data_loader.Demonstrations:
@@ -57,8 +58,8 @@ def load_data(cfg: TrainConfig, generate: bool = True, progress: bool = True) ->
   if not path.exists() and generate:
     demo_data.make_demos(dcfg, cfg.data_dir, progress=progress)
   h, w = cfg.model.image_size
-  return data_loader.load_demonstrations(path, tasks=dcfg.tasks, images=cfg.model.use_images,
-                                         image_size=(w, h))
+  tasks = tuple(n for part in cfg.taskset.split(",") for n in envs.taskset(part))
+  return data_loader.load_demonstrations(path, tasks=tasks, images=cfg.model.use_images, image_size=(w, h))
 
 
 def optimizer(cfg: TrainConfig, params) -> optax.GradientTransformation:
@@ -106,7 +107,7 @@ def make_train_step(cfg: TrainConfig, tx: optax.GradientTransformation, key: jax
     (_, metrics), grads = jax.value_and_grad(loss_fn, has_aux=True)(state.params, batch, state.step)
     updates, opt_state = tx.update(grads, state.opt_state, state.params)
     params = optax.apply_updates(state.params, updates)
-    metrics["grad_norm"] = optax.global_norm(grads)
+    metrics["grad_norm"] = optax.tree.norm(grads)
     return TrainState(state.step + 1, params, opt_state), metrics
 
   return train_step
@@ -136,6 +137,8 @@ def train(cfg: TrainConfig, progress: bool = True, stop_after: int | None = None
   """
   run_dir = cfg.run_dir
   data = load_data(cfg, progress=progress)
+  if cfg.init_from:  # the frozen encoder expects the inputs normalised as in its own training
+    data = dataclasses.replace(data, stats=checkpoint.read_stats(cfg.init_from))
   n_dev = jax.device_count()
   mesh = Mesh(np.asarray(jax.devices()), ("data",))
   replicated = NamedSharding(mesh, PartitionSpec())
@@ -148,7 +151,7 @@ def train(cfg: TrainConfig, progress: bool = True, stop_after: int | None = None
   init_key, step_key = jax.random.split(key)
   params = init_params(cfg, init_key)
   if cfg.init_from:  # few-shot: start from a multi-task run's parameters
-    src_cfg, params, src_step = load_params(cfg.init_from, like=params)
+    src_cfg, params, _ = load_params(cfg.init_from, like=params)
     diffs = checkpoint.config_differences(src_cfg.model, cfg.model)
     if diffs:
       raise checkpoint.CheckpointError(f"{cfg.init_from} has a different model: {'; '.join(diffs)}")

@@ -1,0 +1,62 @@
+"""Few-shot adaptation: one fine-tune per unseen task from a multi-task run, then its evaluation.
+
+The paper's protocol: ACT+SkillPlug retrains the router and the action head
+(encoder, skill library, interactor and posterior frozen); the ACT baseline
+retrains the action head only. Both are the ordinary training loop with an
+optax mask (`TrainConfig.trainable`) and the multi-task parameters as the
+starting point (`TrainConfig.init_from`).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import sys
+from pathlib import Path
+from typing import Sequence
+
+import envs
+from skillplug_jax.evaluate import protocol, tables
+from skillplug_jax.evaluate.policy_controller import load_controller
+from skillplug_jax.model.freeze import FEWSHOT_TRAINABLE
+from skillplug_jax.train import checkpoint, loop
+from skillplug_jax.train.config import TrainConfig
+
+# Fine-tuning budget per preset (steps); paper: the same 6000 ACT epochs.
+FEWSHOT_STEPS = {"quick": 500, "budget": 2000, "paper": 0}
+
+
+def fewshot_config(source: TrainConfig, source_dir: Path, task: str, taskset: str, demos: int,
+                   steps: int | None = None) -> TrainConfig:
+  steps = FEWSHOT_STEPS.get(source.preset, 0) if steps is None else steps
+  return dataclasses.replace(
+      source, taskset=task, data_taskset=taskset, demos=demos, init_from=str(source_dir),
+      trainable=tuple(sorted(FEWSHOT_TRAINABLE[source.model.policy])), max_steps=steps,
+      warmup_steps=min(source.warmup_steps, max(steps // 10, 0)),
+      ckpt_every=max(steps, 1) if steps else source.ckpt_every,
+      workdir=str(Path(f"{source_dir}_fewshot") / task))
+
+
+def adapt_and_evaluate(source_runs: Sequence[str | Path], taskset: str = "discoverse_fewshot4",
+                       demos: int = 10, trials: int = 50, seed: int = protocol.EVAL_SEED,
+                       batch: int = 50, steps: int | None = None, progress: bool = True) -> dict:
+  tasks = envs.taskset(taskset)
+  results, rates = [], {}
+  for src in source_runs:
+    src = Path(src)
+    source = checkpoint.read_config(src)
+    label = "ACT+SkillPlug" if source.model.is_skillplug else "ACT"
+    for task in tasks:
+      cfg = fewshot_config(source, src, task, taskset, demos, steps)
+      if progress:
+        print(f"few-shot {label} (seed {source.seed}) on {task}: training {sorted(cfg.trainable)}",
+              file=sys.stderr)
+      run = loop.train(cfg, progress=progress)
+      controller, _ = load_controller(run)
+      h, w = cfg.model.image_size
+      r = protocol.evaluate_task(task, controller, trials, seed, batch, render=cfg.model.use_images,
+                                 image_size=(w, h))
+      r.update(run=str(run), source=str(src), policy=label, train_seed=source.seed)
+      results.append(r)
+      rates.setdefault(label, {}).setdefault(task, []).append(r["success_rate"])
+  return dict(taskset=taskset, demos=demos, trials=trials, seed=seed, results=results,
+              table=tables.success_table(rates, tasks))
