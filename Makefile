@@ -49,6 +49,8 @@ pretrain: install
 
 # Few-shot: fine-tune FROM (a pretrain run directory) on each unseen task, then evaluate it.
 TRIALS ?= 50
+fewshot: TASKSET = discoverse_fewshot4
+fewshot: DEMOS = 10
 fewshot: install
 	$(VENV)/bin/skillplug fewshot --from $(FROM) --taskset $(TASKSET) --demos $(DEMOS) --trials $(TRIALS) --out $(OUT)/fewshot_$(notdir $(FROM))
 

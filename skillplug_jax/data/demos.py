@@ -81,7 +81,7 @@ def make_demos(cfg: DemoConfig, out: str | os.PathLike = "results/datasets", pro
       _save_stage(path, kept, info)
     else:
       bar.update(cfg.demos)
-    stats[task] = dict(_load_stage(path)[1])
+    stats[task] = _stage_info(path)
   bar.close()
 
   def records():
@@ -98,8 +98,12 @@ def make_demos(cfg: DemoConfig, out: str | os.PathLike = "results/datasets", pro
                   device=str(jax.devices()[0]),
                   per_task={t: {k: v for k, v in s.items() if k != "reset_index"} for t, s in stats.items()})
   version_dir = rlds.write_dataset(building, cfg.spec, records, metadata)
-  normalization.write_stats(version_dir, normalization.compute_stats(
-      (ep for kept, _ in (_load_stage(staging / f"{t}.npz") for t in tasks) for ep in kept)))
+  actions, joints = [], []
+  for t in tasks:  # only the two arrays the statistics need, not the images
+    with np.load(staging / f"{t}.npz") as z:
+      actions.append(z["action"])
+      joints.append(z["obs/joint_pos"])
+  normalization.write_stats(version_dir, normalization.stats_of(np.concatenate(actions), np.concatenate(joints)))
   os.replace(version_dir, final)
   shutil.rmtree(building, ignore_errors=True)
   shutil.rmtree(staging, ignore_errors=True)
@@ -151,6 +155,11 @@ def _save_stage(path: Path, kept: list[Episode], info: dict) -> None:
   os.replace(tmp, path)
 
 
+def _stage_info(path: Path) -> dict:
+  with np.load(path) as z:
+    return {k[5:]: z[k].item() if z[k].ndim == 0 else z[k] for k in z.files if k.startswith("info/")}
+
+
 def _load_stage(path: Path) -> tuple[list[Episode], dict]:
   with np.load(path) as z:
     lengths = z["lengths"]
@@ -161,6 +170,5 @@ def _load_stage(path: Path) -> tuple[list[Episode], dict]:
     eps = [Episode(observation={k: v[s:e] for k, v in obs.items()}, action=action[s:e],
                    success=bool(z["success"][i]), nan=bool(z["nan"][i]))
            for i, (s, e) in enumerate(zip(starts, ends))]
-    info = {k[5:]: z[k].item() if z[k].ndim == 0 else z[k] for k in z.files if k.startswith("info/")}
-  return eps, info
+  return eps, _stage_info(path)
 
