@@ -14,8 +14,6 @@ from typing import Sequence
 
 import jax
 import jax.numpy as jnp
-import mujoco
-import numpy as np
 from brax.envs.base import Env, State
 from mujoco import mjx
 

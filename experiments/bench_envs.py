@@ -22,6 +22,7 @@ from mujoco import mjx
 
 import envs
 from envs import robot, rollout
+from skillplug_jax.atomic_json import write_json_atomic
 
 
 def _best_time(fn, arg, repeats):
@@ -97,11 +98,7 @@ def main(argv=None):
                  constraints_per_env=envs.EnvConfig.constraints_per_env)
   out = dict(device=str(jax.devices()[0]), platform=jax.devices()[0].platform,
              cpu_count=os.cpu_count(), mjx_options=options, results=rows)
-  os.makedirs(os.path.dirname(args.out) or ".", exist_ok=True)
-  tmp = args.out + ".tmp"
-  with open(tmp, "w") as f:
-    json.dump(out, f, indent=2)
-  os.replace(tmp, args.out)
+  write_json_atomic(args.out, out)
   print(f"wrote {args.out}")
 
 

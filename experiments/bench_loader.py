@@ -20,6 +20,7 @@ import time
 import jax
 
 from skillplug_jax.data import loader
+from skillplug_jax.atomic_json import write_json_atomic
 
 
 def bench(dataset: str, batches: list[int], steps: int, images: bool) -> dict:
@@ -58,11 +59,7 @@ def main(argv=None):
   p.add_argument("--out", default="results/bench_loader.json")
   args = p.parse_args(argv)
   result = bench(args.dataset, [int(b) for b in args.batches.split(",")], args.steps, not args.state_only)
-  os.makedirs(os.path.dirname(os.path.abspath(args.out)), exist_ok=True)
-  tmp = args.out + ".tmp"
-  with open(tmp, "w") as f:
-    json.dump(result, f, indent=2)
-  os.replace(tmp, args.out)
+  write_json_atomic(args.out, result)
   print(f"wrote {args.out}")
 
 

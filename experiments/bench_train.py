@@ -24,6 +24,7 @@ import numpy as np
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
 from skillplug_jax.train import config, loop
+from skillplug_jax.atomic_json import write_json_atomic
 
 
 def bench_one(preset: str, policy: str, batch: int, steps: int) -> dict:
@@ -78,11 +79,7 @@ def main(argv=None):
     rows += [pair["act"], pair["skillplug"]]
   result = dict(devices=[str(d) for d in jax.devices()], xla_flags=os.environ.get("XLA_FLAGS", ""),
                 results=rows)
-  os.makedirs(os.path.dirname(os.path.abspath(args.out)), exist_ok=True)
-  tmp = args.out + ".tmp"
-  with open(tmp, "w") as f:
-    json.dump(result, f, indent=2)
-  os.replace(tmp, args.out)
+  write_json_atomic(args.out, result)
   print(f"wrote {args.out}")
 
 

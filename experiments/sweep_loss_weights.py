@@ -18,7 +18,6 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import json
-import os
 import time
 
 import jax
@@ -30,6 +29,7 @@ from skillplug_jax.data import loader as data_loader
 from skillplug_jax.model.policy import Policy
 from skillplug_jax.train import config, loop
 from skillplug_jax.train.scalars import read_metrics
+from skillplug_jax.atomic_json import write_json_atomic
 
 GRID = {"kl": (0.1, 10.0), "bsa": (0.01, 1.0), "sd": (0.01, 1.0)}
 
@@ -75,11 +75,7 @@ def main(argv=None):
     print(json.dumps(row), flush=True)
   result = dict(preset="quick", steps=base.max_steps, val=dict(demos=args.val_demos, data_seed=1),
                 device=str(jax.devices()[0]), results=rows)
-  os.makedirs(os.path.dirname(os.path.abspath(args.out)), exist_ok=True)
-  tmp = args.out + ".tmp"
-  with open(tmp, "w") as f:
-    json.dump(result, f, indent=2)
-  os.replace(tmp, args.out)
+  write_json_atomic(args.out, result)
   print(f"wrote {args.out}")
 
 

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import sys
 import time
@@ -53,10 +52,8 @@ def cmd_experts(args) -> int:
   if args.json:
     payload = dict(taskset=args.taskset, episodes=args.episodes, seed=args.seed, impl=args.impl,
                    device=str(jax.devices()[0]), tasks=rows)
-    tmp = args.json + ".tmp"
-    with open(tmp, "w") as f:
-      json.dump(payload, f, indent=2)
-    os.replace(tmp, args.json)  # atomic: no half-written file
+    from skillplug_jax.atomic_json import write_json_atomic
+    write_json_atomic(args.json, payload)
     print(f"\nwrote {args.json}")
   return 0
 
@@ -113,7 +110,7 @@ def cmd_eval(args) -> int:
   print("\nmean policy queries per successful episode: "
         + ", ".join(f"{k}: {v:.1f}" if v else f"{k}: -" for k, v in out["mean_queries_per_success"].items()))
   if args.out:
-    from skillplug_jax.data.rlds import write_json_atomic
+    from skillplug_jax.atomic_json import write_json_atomic
     base = Path(args.out)
     base.parent.mkdir(parents=True, exist_ok=True)
     write_json_atomic(base.with_suffix(".json"), out)
@@ -129,7 +126,7 @@ def cmd_fewshot(args) -> int:
   from pathlib import Path
 
   from skillplug_jax import fewshot
-  from skillplug_jax.data.rlds import write_json_atomic
+  from skillplug_jax.atomic_json import write_json_atomic
   from skillplug_jax.evaluate import tables
 
   runs = [r for part in args.runs for r in part.split(",") if r]

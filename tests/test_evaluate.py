@@ -12,7 +12,7 @@ from envs import rollout as env_rollout
 from envs.batched import BatchedEnv
 from skillplug_jax.evaluate import protocol, tables
 from skillplug_jax.evaluate.policy_controller import policy_controller, temporal_ensemble
-from skillplug_jax.evaluate.rollout import Controller, evaluate, expert_controller
+from skillplug_jax.evaluate.rollout import evaluate, expert_controller
 from skillplug_jax.model import config as model_config
 from skillplug_jax.model.policy import Policy
 from skillplug_jax.train import loop

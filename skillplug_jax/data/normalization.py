@@ -13,6 +13,7 @@ from typing import Iterable
 
 import numpy as np
 
+from skillplug_jax.atomic_json import read_json, write_json_atomic
 from skillplug_jax.data import rlds
 
 STATS_FILE = "norm_stats.json"
@@ -40,7 +41,7 @@ def stats_of(action: np.ndarray, joint_pos: np.ndarray) -> dict:
 
 
 def write_stats(dataset_dir: str | Path, stats: dict) -> None:
-  rlds.write_json_atomic(Path(dataset_dir) / STATS_FILE, stats)
+  write_json_atomic(Path(dataset_dir) / STATS_FILE, stats)
 
 
 def read_stats(dataset_dir: str | Path) -> dict | None:
@@ -48,7 +49,7 @@ def read_stats(dataset_dir: str | Path) -> dict | None:
   if not path.exists():
     return None
   try:
-    stats = rlds.read_json(path)
+    stats = read_json(path)
     for k in KEYS:
       if len(stats[k]["mean"]) != rlds.ACTION_DIM or len(stats[k]["std"]) != rlds.ACTION_DIM:
         raise ValueError(f"{k} statistics have the wrong length")

@@ -15,7 +15,6 @@ the episode ended in success.
 from __future__ import annotations
 
 import contextlib
-import json
 import os
 from pathlib import Path
 from typing import Callable, Iterable, Iterator, NamedTuple
@@ -236,15 +235,3 @@ def _stack(rows: list[dict]) -> dict:
     else:
       out[k] = np.stack([np.asarray(r[k]) for r in rows])
   return out
-
-
-def read_json(path: Path) -> dict:
-  with open(path) as f:
-    return json.load(f)
-
-
-def write_json_atomic(path: Path, payload: dict) -> None:
-  tmp = Path(f"{path}.tmp")
-  with open(tmp, "w") as f:
-    json.dump(payload, f, indent=2)
-  os.replace(tmp, path)

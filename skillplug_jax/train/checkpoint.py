@@ -17,7 +17,7 @@ from pathlib import Path
 import jax
 import orbax.checkpoint as ocp
 
-from skillplug_jax.data import rlds
+from skillplug_jax.atomic_json import write_json_atomic
 from skillplug_jax.train import config as train_config
 
 CONFIG_FILE = "config.json"
@@ -53,8 +53,8 @@ def restore(mngr: ocp.CheckpointManager, step: int, like):
 
 def write_run_files(run_dir: Path, cfg, stats: dict) -> None:
   run_dir.mkdir(parents=True, exist_ok=True)
-  rlds.write_json_atomic(run_dir / CONFIG_FILE, train_config.to_dict(cfg))
-  rlds.write_json_atomic(run_dir / STATS_FILE, stats)
+  write_json_atomic(run_dir / CONFIG_FILE, train_config.to_dict(cfg))
+  write_json_atomic(run_dir / STATS_FILE, stats)
 
 
 def read_config(run_dir: Path) -> train_config.TrainConfig:
