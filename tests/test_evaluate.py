@@ -99,6 +99,13 @@ def test_policy_in_the_loop_records_routing_and_queries():
   chunked = evaluate(benv, policy_controller(m, params, stats, query_every=5), keys)
   assert (chunked.queries == -(-steps // 5)).all()
   assert np.isnan(chunked.routing[1]).all() and not np.isnan(chunked.routing[5]).any()
+  # another run of the same model reuses the compiled loop (its weights are an argument)
+  leaves, tree = jax.tree.flatten(params)
+  noise = [0.5 * jax.random.normal(jax.random.PRNGKey(i), x.shape) for i, x in enumerate(leaves)]
+  other = jax.tree.unflatten(tree, [x + n for x, n in zip(leaves, noise)])  # router no longer uniform
+  c1, c2 = policy_controller(m, params, stats), policy_controller(m, other, stats)
+  assert c1.act is c2.act and c1.init is c2.init
+  assert not np.allclose(evaluate(benv, c2, keys).routing, every.routing)
   fixed = evaluate(benv, policy_controller(m, params, stats, routing=[0.0, 1.0, 0.0]), keys)
   np.testing.assert_array_equal(fixed.routing[0], np.tile([0.0, 1.0, 0.0], (3, 1)))
   # the action the env receives is the unnormalised chunk: mean + std * prediction

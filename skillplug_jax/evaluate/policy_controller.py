@@ -10,6 +10,8 @@ queried every `query_every` steps and its chunk runs open loop in between.
 
 from __future__ import annotations
 
+import functools
+
 import jax
 import jax.numpy as jnp
 
@@ -44,46 +46,55 @@ def policy_controller(model: ModelConfig, params, stats: dict, *, query_every: i
   temporal = (query_every == 1) if ensemble is None else ensemble
   if temporal and query_every != 1:
     raise ValueError("temporal ensembling queries the policy every step (query_every=1)")
+  fixed = None if routing is None else tuple(float(r) for r in routing)
+  init, act = _controller_fns(model, query_every, temporal, ensemble_k, fixed)
+  weights = {"params": params,
+             "stats": {k: {s: jnp.asarray(stats[k][s], jnp.float32) for s in ("mean", "std")}
+                       for k in ("action", "joint_pos")}}
+  return Controller(init, act, model.num_skills if model.is_skillplug else 0, name, weights)
+
+
+@functools.lru_cache(maxsize=None)
+def _controller_fns(model: ModelConfig, query_every: int, temporal: bool, ensemble_k: float, fixed):
+  """(init, act) for one model and query scheme; cached so that runs of the
+  same model reuse one compiled evaluation loop (their weights are arguments)."""
   policy = Policy(model)
   chunk, adim = model.chunk, model.action_dim
-  a_mean, a_std = (jnp.asarray(stats["action"][k], jnp.float32) for k in ("mean", "std"))
-  j_mean, j_std = (jnp.asarray(stats["joint_pos"][k], jnp.float32) for k in ("mean", "std"))
-  fixed = None if routing is None else jnp.asarray(routing, jnp.float32)
+  routing = None if fixed is None else jnp.asarray(fixed, jnp.float32)
 
-  def predict(state):
-    obs = state.obs
-    x = {"joint_pos": (obs["joint_pos"] - j_mean) / j_std,
+  def predict(weights, state):
+    obs, st = state.obs, weights["stats"]
+    x = {"joint_pos": (obs["joint_pos"] - st["joint_pos"]["mean"]) / st["joint_pos"]["std"],
          "object_state": envs.padded_object_state(obs["object_state"])}
     if model.use_images:
       for cam in model.cameras:
         x[f"{cam}_rgb"] = obs[f"{cam}_rgb"]
-    pred, r = policy.apply({"params": params}, x, fixed, method=Policy.predict)
-    return pred * a_std + a_mean, r
-
+    pred, r = policy.apply({"params": weights["params"]}, x, routing, method=Policy.predict)
+    return pred * st["action"]["std"] + st["action"]["mean"], r
 
   if temporal:
     def init(state):
       b = state.obs["joint_pos"].shape[0]
       return jnp.zeros((b, chunk, chunk, adim), jnp.float32)
 
-    def act(buf, state, t):
-      pred, r = predict(state)
+    def act(weights, buf, state, t):
+      pred, r = predict(weights, state)
       action, buf = temporal_ensemble(buf, pred, t, ensemble_k)
       return action, buf, ({} if r is None else {"routing": r})
 
-    return Controller(init, act, model.num_skills if model.is_skillplug else 0, name)
+    return init, act
 
   def init(state):
     b = state.obs["joint_pos"].shape[0]
     return jnp.zeros((b, chunk, adim), jnp.float32), jnp.zeros((b, model.num_skills), jnp.float32)
 
-  def act(cs, state, t):
+  def act(weights, cs, state, t):
     plan, last_r = cs
     query = t % query_every == 0
     b = plan.shape[0]
 
     def ask(_):
-      pred, r = predict(state)
+      pred, r = predict(weights, state)
       return pred, (last_r if r is None else r)
 
     plan, r = jax.lax.cond(query, ask, lambda _: (plan, last_r), None)
@@ -93,7 +104,7 @@ def policy_controller(model: ModelConfig, params, stats: dict, *, query_every: i
       info["routing"] = r
     return action, (plan, r), info
 
-  return Controller(init, act, model.num_skills if model.is_skillplug else 0, name)
+  return init, act
 
 
 def load_controller(run_dir, **kwargs) -> tuple[Controller, object]:

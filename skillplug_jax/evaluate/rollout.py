@@ -1,8 +1,9 @@
 """Closed-loop evaluation: a batch of environments and a controller in one jitted loop.
 
-A `Controller` is a pair of pure functions over the batch:
+A `Controller` is a pair of pure functions over the batch and the arrays
+they read (`weights`: a policy's parameters and statistics):
   init(state) -> cstate
-  act(cstate, state, t) -> (actions [B, 7], cstate, info)
+  act(weights, cstate, state, t) -> (actions [B, 7], cstate, info)
 where info may hold `routing` [B, K] (the router's weights) and `queried`
 [B] bool (whether the policy was asked this step; default: every step), and `state` is the batched Brax state (a learned policy reads `state.obs`;
 the scripted expert also reads the privileged `state.pipeline_state`). The
@@ -16,7 +17,7 @@ only (the environment keeps its last finite state and marks it).
 from __future__ import annotations
 
 import functools
-from typing import Callable, NamedTuple
+from typing import Any, Callable, NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -31,6 +32,9 @@ class Controller(NamedTuple):
   act: Callable
   num_skills: int = 0  # > 0: act returns routing weights to record
   name: str = ""
+  # Passed into the jitted loop as an argument, not baked in as constants:
+  # runs of the same model (training seeds) share one compiled loop.
+  weights: Any = ()
 
 
 class EpisodeResults(NamedTuple):
@@ -49,7 +53,7 @@ def expert_controller(benv: BatchedEnv) -> Controller:
   def init(state):
     return jax.vmap(lambda s: expert.init(env, s))(state)
 
-  def act(cstate, state, t):
+  def act(weights, cstate, state, t):
     action, cstate = jax.vmap(lambda d, x: expert.act(env, d, x))(state.pipeline_state, cstate)
     return action, cstate, {}
 
@@ -57,14 +61,13 @@ def expert_controller(benv: BatchedEnv) -> Controller:
 
 
 @functools.lru_cache(maxsize=None)
-def _episode_loop(benv: BatchedEnv, controller: Controller):
+def _episode_loop(benv: BatchedEnv, init: Callable, act: Callable, k: int):
   limit = benv.episode_length
-  k = controller.num_skills
 
-  def run(keys):
+  def run(weights, keys):
     state = benv.reset(keys)
     b = keys.shape[0]
-    carry = dict(t=jnp.zeros((), jnp.int32), state=state, cstate=controller.init(state),
+    carry = dict(t=jnp.zeros((), jnp.int32), state=state, cstate=init(state),
                  queries=jnp.zeros((b,), jnp.int32),
                  routing=jnp.full((limit, b, max(k, 1)), jnp.nan, jnp.float32))
 
@@ -73,7 +76,7 @@ def _episode_loop(benv: BatchedEnv, controller: Controller):
 
     def body(c):
       alive = c["state"].done == 0
-      actions, cstate, info = controller.act(c["cstate"], c["state"], c["t"])
+      actions, cstate, info = act(weights, c["cstate"], c["state"], c["t"])
       queried = info.get("queried", jnp.ones_like(alive)) & alive
       routing = info.get("routing")
       new = dict(t=c["t"] + 1, state=benv.step(c["state"], actions), cstate=cstate,
@@ -92,7 +95,8 @@ def _episode_loop(benv: BatchedEnv, controller: Controller):
 
 def evaluate(benv: BatchedEnv, controller: Controller, keys: jax.Array) -> EpisodeResults:
   """Run one batch of episodes from reset keys `keys` [B, 2] to the end."""
-  out = jax.device_get(_episode_loop(benv, controller)(keys))
+  loop = _episode_loop(benv, controller.init, controller.act, controller.num_skills)
+  out = jax.device_get(loop(controller.weights, keys))
   first = np.asarray(out["first"])
   steps = int(out["t"])
   routing = np.asarray(out["routing"])[:steps] if controller.num_skills else None
