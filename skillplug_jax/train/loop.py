@@ -180,7 +180,8 @@ def train(cfg: TrainConfig, progress: bool = True, stop_after: int | None = None
       window.append(metrics)
       done = step + 1
       if done % cfg.log_every == 0 or done == end or done % cfg.ckpt_every == 0:
-        means = {k: float(np.mean([float(m[k]) for m in window])) for k in window[0]}
+        host = jax.device_get(window)  # one transfer for the whole window
+        means = {k: float(np.mean([m[k] for m in host])) for k in host[0]}
         if not all(math.isfinite(v) for v in means.values()):
           bad = {k: v for k, v in means.items() if not math.isfinite(v)}
           raise TrainingError(
