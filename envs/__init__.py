@@ -35,6 +35,9 @@ TASKSETS: dict[str, tuple[str, ...]] = {
     "discoverse7": ("jujube_pick", "kiwi_place", "stack_block", "coffeecup_place",
                     "block_bridge_place", "drawer_open", "laptop_close"),
     "discoverse_fewshot4": ("cuplid_cover", "block_place", "jujube_place", "mouse_push"),
+    # The CPU quickstart's pretraining set: the discoverse7 tasks whose expert
+    # episodes and time limits are shortest, so closed-loop evaluation is quick.
+    "quickstart3": ("jujube_pick", "drawer_open", "laptop_close"),
 }
 
 
@@ -57,6 +60,13 @@ def task_class(name: str) -> type[TabletopEnv]:
   return TASKS[name]
 
 
+def quiet_warp() -> None:
+  """Silence Warp's per-module compile and cache messages (warnings still print)."""
+  import warp as wp
+  wp.config.quiet = True
+  wp.config.log_level = wp.LOG_WARNING
+
+
 def taskset(name: str) -> tuple[str, ...]:
   """Task names of a taskset; a single task name is accepted as a one-task set."""
   if name in TASKSETS:
@@ -69,9 +79,9 @@ def taskset(name: str) -> tuple[str, ...]:
 
 
 def make(name: str, num_envs: int = 1, render: bool = False, image_size=(64, 64),
-         impl: str = "warp", **config) -> BatchedEnv:
-  """A batch of `num_envs` environments of task `name`."""
+         impl: str = "warp", devices: tuple | None = None, **config) -> BatchedEnv:
+  """A batch of `num_envs` environments of task `name` (per device, when rendering on `devices`)."""
   if num_envs < 1:
     raise ValueError(f"num_envs must be >= 1, got {num_envs}")
   env = task_class(name)(EnvConfig(impl=impl, num_envs=num_envs, **config))
-  return BatchedEnv(env, num_envs, render=render, image_size=image_size)
+  return BatchedEnv(env, num_envs, render=render, image_size=image_size, devices=devices)

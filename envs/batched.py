@@ -1,7 +1,9 @@
 """Batched environments: Brax's vmap and episode-limit wrappers, plus batch rendering.
 
 MJX's Warp renderer needs the batch size when its context is made, so images
-are rendered here, on the whole batch, after the vmapped physics step.
+are rendered here, on the whole batch, after the vmapped physics step. A batch
+split over several GPUs (`devices`) gets one render context per GPU; Warp has
+a single CPU device, so on a CPU the shards would share one context and race.
 """
 
 from __future__ import annotations
@@ -23,8 +25,10 @@ class BatchedEnv:
   [B, H, W, 3]) from `mjx.render`; otherwise no image is made (state-only mode).
   """
 
-  def __init__(self, env: TabletopEnv, num_envs: int, render: bool = False, image_size=(64, 64)):
+  def __init__(self, env: TabletopEnv, num_envs: int, render: bool = False, image_size=(64, 64),
+               devices: tuple | None = None):
     self.env = env
+    self.devices = devices  # JAX devices a sharded rendering batch runs on (num_envs each)
     self.num_envs = num_envs
     self.render = render
     self.image_size = tuple(image_size)
@@ -36,8 +40,14 @@ class BatchedEnv:
       m = env.mj_model
       self._cam_ids = [m.camera(c).id for c in CAMERAS]
       w, h = self.image_size
+      warp_devices = None
+      if devices is not None and len(devices) > 1:
+        if any(d.platform != "gpu" for d in devices):
+          raise ValueError("a rendering batch can be split over GPUs only (Warp has one CPU device, "
+                           "so CPU shards would share one render context)")
+        warp_devices = [f"cuda:{d.local_hardware_id}" for d in devices]
       self._ctx = mjx.create_render_context(
-          m, nworld=num_envs, cam_res=(w, h), use_textures=False, use_shadows=False,
+          m, nworld=num_envs, devices=warp_devices, cam_res=(w, h), use_textures=False, use_shadows=False,
           render_rgb=[True] * m.ncam, render_depth=[False] * m.ncam)
 
   @property

@@ -76,8 +76,7 @@ def main(argv=None):
   p.add_argument("--repeats", type=int, default=2)
   p.add_argument("--out", default="results/bench_envs.json")
   args = p.parse_args(argv)
-  import warp as wp
-  wp.config.quiet = True
+  envs.quiet_warp()
 
   names = list(envs.TASKS) if args.tasks == "all" else [envs.task_class(n).name for n in args.tasks.split(",")]
   size = tuple(int(v) for v in args.render_size.split("x"))

@@ -3,14 +3,8 @@
 from __future__ import annotations
 
 import argparse
-import os
 import sys
 import time
-
-
-def _quiet_warp():
-  import warp as wp
-  wp.config.quiet = True  # kernel-cache chatter; warnings still print
 
 
 def cmd_experts(args) -> int:
@@ -99,10 +93,11 @@ def cmd_eval(args) -> int:
   import envs
   from skillplug_jax.evaluate import protocol, tables
 
-  runs = [r for part in args.runs for r in part.split(",") if r]
+  runs = _expand_seeds([r for part in args.runs for r in part.split(",") if r], args.seeds)
   tasks = [n for part in args.taskset.split(",") for n in envs.taskset(part)]
+  video_dir = args.video_dir or (f"{args.out}_videos" if args.out else "videos")
   out = protocol.evaluate_runs(runs, tasks, args.trials, seed=args.seed, batch=args.batch,
-                               query_every=args.query_every)
+                               query_every=args.query_every, videos=args.videos, video_dir=video_dir)
   md = tables.markdown(out["table"])
   print(f"\nSuccess rate (%), {args.trials} trials per task (seed {args.seed}); "
         "mean±SE over training seeds where there are several:\n")
@@ -110,23 +105,37 @@ def cmd_eval(args) -> int:
   print("\nmean policy queries per successful episode: "
         + ", ".join(f"{k}: {v:.1f}" if v else f"{k}: -" for k, v in out["mean_queries_per_success"].items()))
   if args.out:
-    from skillplug_jax.atomic_json import write_json_atomic
+    from skillplug_jax.atomic_json import write_json_atomic, write_text_atomic
     base = Path(args.out)
-    base.parent.mkdir(parents=True, exist_ok=True)
     write_json_atomic(base.with_suffix(".json"), out)
-    for suffix, text in ((".md", md + "\n"), (".csv", tables.csv(out["table"]))):
-      tmp = base.with_suffix(suffix + ".tmp")
-      tmp.write_text(text)
-      os.replace(tmp, base.with_suffix(suffix))
+    write_text_atomic(base.with_suffix(".md"), md + "\n")
+    write_text_atomic(base.with_suffix(".csv"), tables.csv(out["table"]))
     print(f"wrote {base.with_suffix('.json')}, .md, .csv")
+  if args.videos:
+    print(f"videos of the first {args.videos} trials per task: {video_dir}/<run>/<task>_trialNN.gif")
   return 0
+
+
+def _expand_seeds(runs: list[str], seeds: str) -> list[str]:
+  """`--ckpt results/runs/x_seed{seed} --seeds 0,1,2`: one run directory per training seed."""
+  if not seeds:
+    bad = [r for r in runs if "{seed}" in r]
+    if bad:
+      raise ValueError(f"{bad[0]} has a {{seed}} placeholder: give --seeds")
+    return runs
+  values = [v for v in seeds.split(",") if v]
+  if not all(v.isdigit() for v in values):
+    raise ValueError(f"--seeds must be comma-separated integers, got {seeds!r}")
+  if not all("{seed}" in r for r in runs):
+    raise ValueError("--seeds needs run directories with a {seed} placeholder, e.g. results/runs/x_seed{seed}")
+  return [r.replace("{seed}", v) for r in runs for v in values]
 
 
 def cmd_fewshot(args) -> int:
   from pathlib import Path
 
   from skillplug_jax import fewshot
-  from skillplug_jax.atomic_json import write_json_atomic
+  from skillplug_jax.atomic_json import write_json_atomic, write_text_atomic
   from skillplug_jax.evaluate import tables
 
   runs = [r for part in args.runs for r in part.split(",") if r]
@@ -137,9 +146,8 @@ def cmd_fewshot(args) -> int:
   print(md)
   if args.out:
     base = Path(args.out)
-    base.parent.mkdir(parents=True, exist_ok=True)
     write_json_atomic(base.with_suffix(".json"), out)
-    base.with_suffix(".md").write_text(md + "\n")
+    write_text_atomic(base.with_suffix(".md"), md + "\n")
     print(f"wrote {base.with_suffix('.json')}, .md")
   return 0
 
@@ -188,8 +196,10 @@ def build_parser() -> argparse.ArgumentParser:
 
   v = sub.add_parser("eval", help="closed-loop success rates of trained policies (paired trials)",
                      formatter_class=argparse.ArgumentDefaultsHelpFormatter)
-  v.add_argument("--runs", nargs="+", required=True,
-                 help="run directories (one per training seed; ACT and SkillPlug runs may be mixed)")
+  v.add_argument("--runs", "--ckpt", dest="runs", nargs="+", required=True,
+                 help="run directories (one per training seed; ACT and SkillPlug runs may be mixed); "
+                      "with --seeds, '{seed}' in a path is replaced by each seed")
+  v.add_argument("--seeds", default="", help="training seeds for '{seed}' in --runs, e.g. 0,1,2")
   v.add_argument("--taskset", default="discoverse7")
   v.add_argument("--trials", type=int, default=50, help="seeded episodes per task")
   v.add_argument("--seed", type=int, default=1000, help="trial i starts from reset_keys(seed)[i] for every policy")
@@ -197,6 +207,8 @@ def build_parser() -> argparse.ArgumentParser:
   v.add_argument("--query-every", type=int, default=1,
                  help="1: query every step with temporal ensembling; n > 1: open-loop chunks of n steps")
   v.add_argument("--out", default="", help="write OUT.json, OUT.md and OUT.csv")
+  v.add_argument("--videos", type=int, default=0, help="GIFs (side camera) of the first N trials per task")
+  v.add_argument("--video-dir", default="", help="where the GIFs go (default OUT_videos, or ./videos)")
   v.set_defaults(fn=cmd_eval)
 
   f = sub.add_parser("fewshot", help="adapt multi-task runs to unseen tasks from a few demos, then evaluate",
@@ -220,7 +232,8 @@ def main(argv=None) -> int:
   for flag in ("episodes", "demos", "batch", "trials"):
     if getattr(args, flag, 1) < 1:
       raise SystemExit(f"skillplug: --{flag} must be >= 1")
-  _quiet_warp()
+  import envs
+  envs.quiet_warp()
   try:
     return args.fn(args)
   except ValueError as e:  # bad names, shapes, datasets, checkpoints: one clear line

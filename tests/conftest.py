@@ -6,6 +6,6 @@ os.environ.setdefault("XLA_PYTHON_CLIENT_PREALLOCATE", "false")
 # optimisation costs more than it saves there (~1.5x faster test runs).
 os.environ.setdefault("XLA_FLAGS", "--xla_backend_optimization_level=0")
 
-import warp as wp  # noqa: E402
+import envs  # noqa: E402
 
-wp.config.quiet = True
+envs.quiet_warp()

@@ -1,6 +1,12 @@
 """Evaluation engine: the expert reproduced through it, NaN isolation, ensembling, tables."""
 
 import dataclasses
+import os
+import subprocess
+import sys
+import textwrap
+
+import imageio.v3 as iio
 
 import jax
 import jax.numpy as jnp
@@ -55,6 +61,53 @@ def test_nan_episode_fails_alone(benv):
   assert got.nan.tolist() == [True, False, False]
   assert not got.success[0] and got.success[1:].all()
   np.testing.assert_array_equal(got.first_success_step[1:], ref.first_success_step[1:])
+
+
+def test_two_devices_match_one_and_videos_follow_episodes(tmp_path):
+  """The batch split over 2 (host) devices gives the same episodes as one
+  device running it all; side-camera frames follow each episode to its end."""
+  code = textwrap.dedent("""
+      import jax, numpy as np
+      import envs
+      from envs import rollout as R
+      from skillplug_jax.evaluate.rollout import evaluate, expert_controller, local_devices_for
+      envs.quiet_warp()
+      devices = local_devices_for(4)
+      assert len(devices) == 2 and local_devices_for(1) is None
+      assert local_devices_for(4, render=True) is None  # CPU shards would share one render context
+      keys = R.reset_keys(4, 4)
+      one = envs.make("jujube_pick", num_envs=4, render=True, image_size=(32, 32))
+      ref = evaluate(one, expert_controller(one), keys, frames=2)
+      two = envs.make("jujube_pick", num_envs=2)
+      got = evaluate(two, expert_controller(two), keys, devices)
+      assert ref.success.all(), ref
+      for f in ("success", "first_success_step", "nan", "queries"):
+        np.testing.assert_array_equal(getattr(got, f), getattr(ref, f), err_msg=f)
+      assert got.steps_run == ref.steps_run
+      for i in range(2):
+        assert ref.frames[i].shape == (ref.first_success_step[i] + 1, 32, 32, 3), ref.frames[i].shape
+        assert np.abs(np.diff(ref.frames[i].astype(int), axis=0)).sum() > 0  # the arm moves
+      try:
+        evaluate(one, expert_controller(one), R.reset_keys(4, 8), devices)
+        raise SystemExit("a rendering batch was split over CPU devices")
+      except ValueError as e:
+        assert "render context" in str(e), e
+      print("OK")
+  """)
+  env = dict(os.environ, JAX_PLATFORMS="cpu",
+             XLA_FLAGS=os.environ.get("XLA_FLAGS", "") + " --xla_force_host_platform_device_count=2")
+  out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, timeout=900)
+  assert out.returncode == 0 and "OK" in out.stdout, out.stderr[-3000:]
+
+
+def test_videos_are_written_as_gifs(tmp_path):
+  rng = np.random.default_rng(0)
+  videos = [rng.integers(0, 255, (n, 16, 16, 3), dtype=np.uint8) for n in (5, 9)]
+  protocol._write_videos(videos, tmp_path / "v", "jujube_pick")
+  assert sorted(p.name for p in (tmp_path / "v").iterdir()) == ["jujube_pick_trial00.gif",
+                                                                 "jujube_pick_trial01.gif"]
+  back = iio.imread(tmp_path / "v" / "jujube_pick_trial01.gif", index=None)
+  assert back.shape[0] == 9 and back.shape[1:3] == (16, 16)
 
 
 def test_temporal_ensemble_matches_act_formula():
@@ -146,3 +199,16 @@ def test_success_table_mean_and_standard_error():
   assert tables.csv(t).splitlines()[2] == "ACT+SkillPlug,1,100.00,,50.00,,75.00,"
   with pytest.raises(ValueError, match="different numbers of seeds"):
     tables.success_table({"X": {"jujube_pick": [1.0], "kiwi_place": [1.0, 0.0]}}, ["jujube_pick", "kiwi_place"])
+
+
+def test_eval_cli_expands_seed_templates_and_rejects_bad_ones(capsys):
+  from skillplug_jax import cli
+  assert cli._expand_seeds(["r/a_seed{seed}", "r/b_seed{seed}"], "0,2") == [
+      "r/a_seed0", "r/a_seed2", "r/b_seed0", "r/b_seed2"]
+  assert cli._expand_seeds(["r/a_seed0"], "") == ["r/a_seed0"]
+  assert cli.main(["eval", "--ckpt", "r/a_seed{seed}", "--taskset", "jujube_pick"]) == 2
+  assert "give --seeds" in capsys.readouterr().err
+  assert cli.main(["eval", "--ckpt", "r/a_seed0", "--seeds", "0,x"]) == 2
+  assert "comma-separated integers" in capsys.readouterr().err
+  assert cli.main(["eval", "--ckpt", "r/missing_run", "--taskset", "jujube_pick"]) == 2
+  assert "missing_run" in capsys.readouterr().err

@@ -8,6 +8,7 @@ starts are not training starts.
 
 from __future__ import annotations
 
+import os
 import sys
 import time
 from pathlib import Path
@@ -21,9 +22,10 @@ import envs
 from envs import rollout as env_rollout
 from skillplug_jax.evaluate import tables
 from skillplug_jax.evaluate.policy_controller import load_controller
-from skillplug_jax.evaluate.rollout import Controller, EpisodeResults, evaluate
+from skillplug_jax.evaluate.rollout import Controller, EpisodeResults, evaluate, local_devices_for
 
 EVAL_SEED = 1000
+VIDEO_SIZE = (128, 128)  # side-camera videos of state-based policies (image policies: their own size)
 
 
 def trial_keys(seed: int, trials: int) -> jax.Array:
@@ -31,21 +33,37 @@ def trial_keys(seed: int, trials: int) -> jax.Array:
 
 
 def evaluate_task(task: str, controller: Controller, trials: int, seed: int = EVAL_SEED, batch: int = 50,
-                  render: bool = False, image_size=(64, 64)) -> dict:
-  """Success rate and query counts of one controller on one task."""
-  n_env = min(batch, trials)
-  benv = envs.make(task, num_envs=n_env, render=render, image_size=image_size)
+                  render: bool = False, image_size=(64, 64), videos: int = 0,
+                  video_dir: str | Path | None = None) -> dict:
+  """Success rate and query counts of one controller on one task.
+
+  The batch is split over the local devices (GPUs only, when rendering: see
+  `rollout.local_devices_for`). videos > 0 writes the side
+  camera of the first `videos` trials to `video_dir/<task>_trialNN.gif`.
+  """
+  devices = local_devices_for(min(batch, trials), render=render or videos > 0)
+  ndev = 1 if devices is None else len(devices)
+  per_device = -(-min(batch, trials) // ndev)
+  n_env = per_device * ndev
+  benv = envs.make(task, num_envs=per_device, render=render, image_size=image_size, devices=devices)
   keys = trial_keys(seed, trials)
   parts: list[EpisodeResults] = []
   for start in range(0, trials, n_env):
     k = keys[start:start + n_env]
     if k.shape[0] < n_env:  # last partial batch: pad with repeats, drop them after
       k = jax.numpy.concatenate([k, keys[:n_env - k.shape[0]]])
-    parts.append(evaluate(benv, controller, k))
+    frames = min(videos, per_device) if start == 0 else 0
+    if frames:  # the first batch again with the side camera on (a state policy renders nothing)
+      video_env = benv if render else envs.make(task, num_envs=per_device, render=True, image_size=VIDEO_SIZE,
+                                                devices=devices)
+      parts.append(evaluate(video_env, controller, k, devices, frames=frames))
+      _write_videos(parts[-1].frames, Path(video_dir or "."), task)
+    else:
+      parts.append(evaluate(benv, controller, k, devices))
   take = lambda f: np.concatenate([getattr(p, f) for p in parts])[:trials]  # noqa: E731
   success, nan, queries = take("success"), take("nan"), take("queries")
   routing = [p.routing for p in parts if p.routing is not None]
-  return dict(task=task, abbr=benv.env.abbr, trials=trials, seed=seed,
+  return dict(task=task, abbr=benv.env.abbr, trials=trials, seed=seed, devices=ndev,
               success_rate=float(success.mean()), successes=int(success.sum()),
               nan_episodes=int(nan.sum()),
               mean_queries_success=float(queries[success].mean()) if success.any() else None,
@@ -54,9 +72,23 @@ def evaluate_task(task: str, controller: Controller, trials: int, seed: int = EV
                             .tolist() if routing else None))
 
 
+def _write_videos(frames: list, out: Path, task: str, fps: int = 20) -> None:
+  import imageio.v3 as iio
+  out.mkdir(parents=True, exist_ok=True)
+  for i, video in enumerate(frames):
+    path = out / f"{task}_trial{i:02d}.gif"
+    tmp = path.with_suffix(".tmp.gif")
+    iio.imwrite(tmp, video, duration=1000 / fps, loop=0)
+    os.replace(tmp, path)
+
+
 def evaluate_runs(run_dirs: Sequence[str | Path], tasks: Sequence[str], trials: int, seed: int = EVAL_SEED,
-                  batch: int = 50, query_every: int = 1, progress: bool = True) -> dict:
-  """Every run on every task; runs of the same policy label are that policy's training seeds."""
+                  batch: int = 50, query_every: int = 1, progress: bool = True, videos: int = 0,
+                  video_dir: str | Path = "videos") -> dict:
+  """Every run on every task; runs of the same policy label are that policy's training seeds.
+
+  videos > 0: GIFs of each run's first trials in video_dir/<run name>/.
+  """
   results, rates = [], {}
   bar = tqdm(total=len(run_dirs) * len(tasks), desc="eval", unit="task", file=sys.stderr,
              disable=not progress)
@@ -67,7 +99,8 @@ def evaluate_runs(run_dirs: Sequence[str | Path], tasks: Sequence[str], trials: 
     for task in tasks:
       bar.set_postfix_str(f"{label} seed {cfg.seed} {task}")
       t0 = time.time()
-      r = evaluate_task(task, controller, trials, seed, batch, render=cfg.model.use_images, image_size=(w, h))
+      r = evaluate_task(task, controller, trials, seed, batch, render=cfg.model.use_images, image_size=(w, h),
+                        videos=videos, video_dir=Path(video_dir) / Path(run).name)
       r.update(run=str(run), policy=label, train_seed=cfg.seed, preset=cfg.preset, wall_s=round(time.time() - t0, 1))
       results.append(r)
       rates.setdefault(label, {}).setdefault(task, []).append(r["success_rate"])

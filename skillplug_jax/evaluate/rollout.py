@@ -12,6 +12,10 @@ physics substeps per control step) that stops when every episode has ended or
 the task's time limit is reached; nothing returns to Python until then. An
 episode stops counting at its first success; a NaN state fails that episode
 only (the environment keeps its last finite state and marks it).
+
+With several local devices the episode batch is split over them with
+`shard_map`: each device runs the same loop on its share of environments
+(`benv` is sized for one share) and stops when its own episodes have ended.
 """
 
 from __future__ import annotations
@@ -22,6 +26,7 @@ from typing import Any, Callable, NamedTuple
 import jax
 import jax.numpy as jnp
 import numpy as np
+from jax.sharding import Mesh, PartitionSpec as P
 
 from envs import expert
 from envs.batched import BatchedEnv
@@ -44,6 +49,7 @@ class EpisodeResults(NamedTuple):
   queries: np.ndarray  # [B] policy queries made before the episode ended
   routing: np.ndarray | None  # [T, B, K] routing weights at each query (NaN where none)
   steps_run: int
+  frames: list | None = None  # side camera [T_i + 1, H, W, 3] uint8 of the first episodes: start to end
 
 
 def expert_controller(benv: BatchedEnv) -> Controller:
@@ -61,7 +67,8 @@ def expert_controller(benv: BatchedEnv) -> Controller:
 
 
 @functools.lru_cache(maxsize=None)
-def _episode_loop(benv: BatchedEnv, init: Callable, act: Callable, k: int):
+def _episode_loop(benv: BatchedEnv, init: Callable, act: Callable, k: int, devices: tuple | None,
+                  frames: int):
   limit = benv.episode_length
 
   def run(weights, keys):
@@ -70,6 +77,9 @@ def _episode_loop(benv: BatchedEnv, init: Callable, act: Callable, k: int):
     carry = dict(t=jnp.zeros((), jnp.int32), state=state, cstate=init(state),
                  queries=jnp.zeros((b,), jnp.int32),
                  routing=jnp.full((limit, b, max(k, 1)), jnp.nan, jnp.float32))
+    if frames:  # frame 0 is the start, frame t the side camera after t control steps
+      carry["frames"] = jnp.zeros((limit + 1, frames) + state.obs["side_rgb"].shape[1:], jnp.uint8)
+      carry["frames"] = carry["frames"].at[0].set(state.obs["side_rgb"][:frames])
 
     def cond(c):
       return (c["t"] < limit) & ~jnp.all(c["state"].done > 0)
@@ -79,26 +89,71 @@ def _episode_loop(benv: BatchedEnv, init: Callable, act: Callable, k: int):
       actions, cstate, info = act(weights, c["cstate"], c["state"], c["t"])
       queried = info.get("queried", jnp.ones_like(alive)) & alive
       routing = info.get("routing")
-      new = dict(t=c["t"] + 1, state=benv.step(c["state"], actions), cstate=cstate,
+      state = benv.step(c["state"], actions)
+      new = dict(t=c["t"] + 1, state=state, cstate=cstate,
                  queries=c["queries"] + queried.astype(jnp.int32), routing=c["routing"])
       if routing is not None:
         row = jnp.where(queried[:, None], routing.astype(jnp.float32), jnp.nan)
         new["routing"] = jax.lax.dynamic_update_index_in_dim(c["routing"], row, c["t"], 0)
+      if frames:
+        new["frames"] = jax.lax.dynamic_update_index_in_dim(
+            c["frames"], state.obs["side_rgb"][:frames], c["t"] + 1, 0)
       return new
 
     c = jax.lax.while_loop(cond, body, carry)
-    return dict(t=c["t"], first=c["state"].info["first_success_step"], nan=c["state"].metrics["nan"],
-                queries=c["queries"], routing=c["routing"])
+    return dict(t=jnp.full((b,), c["t"]), first=c["state"].info["first_success_step"], nan=c["state"].metrics["nan"],
+                queries=c["queries"], routing=c["routing"], frames=c.get("frames", jnp.zeros((1, 0))))
 
-  return jax.jit(run)
+  if devices is None:
+    return jax.jit(run)
+  mesh = Mesh(np.asarray(devices), ("batch",))
+  per_env = P("batch")
+  out_specs = dict(t=per_env, first=per_env, nan=per_env, queries=per_env, routing=P(None, "batch"),
+                   frames=P(None, "batch"))
+  # The physics is an opaque Warp call with no replication rules: skip the check.
+  return jax.jit(jax.shard_map(run, mesh=mesh, in_specs=(P(), per_env), out_specs=out_specs,
+                               check_vma=False))
 
 
-def evaluate(benv: BatchedEnv, controller: Controller, keys: jax.Array) -> EpisodeResults:
-  """Run one batch of episodes from reset keys `keys` [B, 2] to the end."""
-  loop = _episode_loop(benv, controller.init, controller.act, controller.num_skills)
+def local_devices_for(batch: int, render: bool = False) -> tuple | None:
+  """The local devices an evaluation batch is split over (None: just one).
+
+  A rendering batch is split over GPUs only: Warp has one CPU device, so CPU
+  shards would share (and race on) one render context.
+  """
+  devices = jax.local_devices()
+  if len(devices) < 2 or batch < len(devices) or (render and devices[0].platform != "gpu"):
+    return None
+  return tuple(devices)
+
+
+def evaluate(benv: BatchedEnv, controller: Controller, keys: jax.Array,
+             devices: tuple | None = None, frames: int = 0) -> EpisodeResults:
+  """Run one batch of episodes from reset keys `keys` [B, 2] to the end.
+
+  devices: split the batch over these devices, `benv.num_envs` environments
+  on each (B = len(devices) * benv.num_envs); None runs it all on one.
+  frames: also return the side camera of the first `frames` episodes
+  (needs a rendering `benv`, at most `benv.num_envs`).
+  """
+  n = 1 if devices is None else len(devices)
+  if keys.shape[0] != n * benv.num_envs:
+    raise ValueError(f"{keys.shape[0]} reset keys for {n} device(s) x {benv.num_envs} environments")
+  if frames and (not benv.render or frames > benv.num_envs):
+    raise ValueError(f"frames={frames} needs a rendering environment batch of at least that many")
+  if benv.render and n > 1 and tuple(benv.devices or ()) != tuple(devices):
+    raise ValueError("a rendering batch split over devices needs an environment made for them "
+                     "(envs.make(..., devices=...): one render context per device)")
+  loop = _episode_loop(benv, controller.init, controller.act, controller.num_skills,
+                       None if devices is None else tuple(devices), frames)
   out = jax.device_get(loop(controller.weights, keys))
   first = np.asarray(out["first"])
-  steps = int(out["t"])
+  ran = np.asarray(out["t"])  # control steps each environment's loop ran (its device's)
+  steps = int(ran.max())
   routing = np.asarray(out["routing"])[:steps] if controller.num_skills else None
+  video = None
+  if frames:  # episode i from its start to its success, or to the last step run
+    ends = np.where(first >= 0, first, ran)
+    video = [np.asarray(out["frames"])[:ends[i] + 1, i] for i in range(frames)]
   return EpisodeResults(success=first >= 0, first_success_step=first, nan=np.asarray(out["nan"]) > 0,
-                        queries=np.asarray(out["queries"]), routing=routing, steps_run=steps)
+                        queries=np.asarray(out["queries"]), routing=routing, steps_run=steps, frames=video)
