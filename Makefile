@@ -13,7 +13,7 @@ OUT ?= results
 
 export MUJOCO_GL ?= egl
 
-.PHONY: install test quickstart experts demos pretrain fewshot eval bench-envs bench-loader bench-train scenes clean
+.PHONY: install test quickstart experts demos pretrain fewshot eval bench-envs bench-loader bench-train bench-eval bench scenes clean
 
 install: $(VENV)/.installed
 
@@ -26,11 +26,10 @@ $(VENV)/.installed: pyproject.toml
 test: install
 	$(PY) -m pytest -q tests
 
-# Quick end-to-end check of the benchmark on a CPU: every task's scripted
-# expert, a few seeded episodes each, with the success table printed.
+# The main job on a CPU: demos, quick pretraining of ACT and ACT+SkillPlug,
+# closed-loop evaluation, few-shot adaptation, success tables (experiments/quickstart.py).
 quickstart: install
-	$(VENV)/bin/skillplug experts --taskset discoverse7 --episodes 4 --batch 4
-	$(VENV)/bin/skillplug experts --taskset discoverse_fewshot4 --episodes 4 --batch 4
+	$(PY) -m experiments.quickstart --out $(OUT)/quickstart
 
 experts: install
 	mkdir -p $(OUT)
@@ -54,9 +53,16 @@ fewshot: DEMOS = 10
 fewshot: install
 	$(VENV)/bin/skillplug fewshot --from $(FROM) --taskset $(TASKSET) --demos $(DEMOS) --trials $(TRIALS) --out $(OUT)/fewshot_$(notdir $(FROM))
 
-# Closed-loop evaluation of one or more runs (RUNS: space-separated run directories).
+# Closed-loop evaluation of one or more runs (RUNS: space-separated run directories,
+# or a path with {seed} and SEEDS=0,1,2); VIDEOS=N: GIFs of the first N trials per task.
+SEEDS ?=
+VIDEOS ?= 0
 eval: install
-	$(VENV)/bin/skillplug eval --runs $(RUNS) --taskset $(TASKSET) --trials $(TRIALS) --out $(OUT)/eval_$(TASKSET)
+	$(VENV)/bin/skillplug eval --runs $(RUNS) --taskset $(TASKSET) --trials $(TRIALS) --out $(OUT)/eval_$(TASKSET) \
+	  $(if $(SEEDS),--seeds $(SEEDS),) --videos $(VIDEOS)
+
+# Every benchmark that needs no dataset (bench-loader reads one: make demos, then make bench-loader).
+bench: bench-envs bench-train bench-eval
 
 bench-envs: install
 	mkdir -p $(OUT)
@@ -67,6 +73,10 @@ bench-loader: install
 
 bench-train: install
 	$(PY) -m experiments.bench_train --out $(OUT)/bench_train.json
+
+bench-eval: install
+	mkdir -p $(OUT)
+	$(PY) -m experiments.bench_eval --out $(OUT)/bench_eval.json
 
 scenes: install
 	$(PY) -m experiments.scene_pictures --out docs/scenes
