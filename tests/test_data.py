@@ -1,9 +1,6 @@
 """Demonstration datasets: RLDS round trip, chunk sampling, validation, atomic generation."""
 
 import json
-import os
-import subprocess
-import sys
 import textwrap
 from pathlib import Path
 
@@ -16,6 +13,7 @@ from envs import rollout
 from skillplug_jax import cli
 from skillplug_jax.data import demos, loader, normalization, rlds
 from skillplug_jax.data.rlds import DatasetError
+from host_devices import run_on_host_devices
 from synthetic import synthetic_episode, write_synthetic
 
 D = envs.OBJECT_STATE_DIM
@@ -156,10 +154,7 @@ def test_batches_shard_over_four_devices(image_dataset):
         raise AssertionError("batch 6 over 4 devices accepted")
       print("OK")
   """)
-  env = dict(os.environ, JAX_PLATFORMS="cpu",
-             XLA_FLAGS=os.environ.get("XLA_FLAGS", "") + " --xla_force_host_platform_device_count=4")
-  out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, timeout=300)
-  assert out.returncode == 0 and "OK" in out.stdout, out.stderr[-3000:]
+  run_on_host_devices(code, 4, timeout=300)
 
 
 # ---- validation -------------------------------------------------------------

@@ -1,13 +1,9 @@
-"""Evaluation engine: the expert reproduced through it, NaN isolation, ensembling, tables."""
+"""Evaluation engine: the expert reproduced through it, NaN isolation, devices, videos, ensembling, tables."""
 
 import dataclasses
-import os
-import subprocess
-import sys
 import textwrap
 
 import imageio.v3 as iio
-
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -23,6 +19,7 @@ from skillplug_jax.model import config as model_config
 from skillplug_jax.model.policy import Policy
 from skillplug_jax.train import loop
 from skillplug_jax.train import config as train_config
+from host_devices import run_on_host_devices
 
 TASK = "jujube_pick"
 
@@ -94,10 +91,7 @@ def test_two_devices_match_one_and_videos_follow_episodes(tmp_path):
         assert "render context" in str(e), e
       print("OK")
   """)
-  env = dict(os.environ, JAX_PLATFORMS="cpu",
-             XLA_FLAGS=os.environ.get("XLA_FLAGS", "") + " --xla_force_host_platform_device_count=2")
-  out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, timeout=900)
-  assert out.returncode == 0 and "OK" in out.stdout, out.stderr[-3000:]
+  run_on_host_devices(code, 2, timeout=900)
 
 
 def test_videos_are_written_as_gifs(tmp_path):

@@ -1,7 +1,6 @@
 """The training loop: exact resume, 1 vs 4 devices, frozen groups, NaN and config errors."""
 
 import os
-import subprocess
 import sys
 import textwrap
 
@@ -13,6 +12,7 @@ from skillplug_jax import fewshot, losses
 from skillplug_jax.data import rlds
 from skillplug_jax.train import checkpoint, config, loop
 from skillplug_jax.train.scalars import read_metrics
+from host_devices import run_on_host_devices
 from synthetic import synthetic_episode, write_synthetic
 
 TASKS = ("jujube_pick", "kiwi_place")
@@ -72,10 +72,7 @@ def test_four_devices_match_one(data_dir, tmp_path):
                  progress=False)
       print("OK")
   """)
-  env = dict(os.environ, JAX_PLATFORMS="cpu",
-             XLA_FLAGS=os.environ.get("XLA_FLAGS", "") + " --xla_force_host_platform_device_count=4")
-  out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, timeout=600)
-  assert out.returncode == 0 and "OK" in out.stdout, out.stderr[-3000:]
+  run_on_host_devices(code, 4, timeout=600)
   # the same losses and gradient norms (the all-reduce only reorders sums)...
   (m1,), (m4,) = read_metrics(one), read_metrics(tmp_path / "four")
   assert m1.keys() == m4.keys()
