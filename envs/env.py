@@ -2,9 +2,16 @@
 
 One class holds what every task shares (robot, control at 20 Hz over physics
 substeps, observations, NaN handling); a task subclasses it with its objects,
-reset sampler, success check and scripted expert plan. Everything here acts
-on a single environment and is pure, so batching is `jax.vmap` (see
+reset sampler, success predicate and scripted expert plan. Everything here
+acts on a single environment and is pure, so batching is `jax.vmap` (see
 `envs.batched`), as in Brax and MuJoCo Playground.
+
+Success is declared, and the episode ends, once the task's predicate has held
+for `SUCCESS_HOLD_STEPS` consecutive control steps: DISCOVERSE checks its
+conditions once, after its expert has released and retreated; checked every
+step, a state that passes for an instant (an object dropped through its
+target, a stack knocked over) must not count. `first_success_step` is the
+first step of that run.
 """
 
 from __future__ import annotations
@@ -16,9 +23,18 @@ import jax
 import jax.numpy as jnp
 from brax.envs.base import Env, State
 from mujoco import mjx
+from mujoco.mjx.third_party import mujoco_warp as mjw
 
 from envs import robot, scene
 
+SUCCESS_HOLD_STEPS = 10  # 0.5 s at 20 Hz
+# The gripper: every body whose contact with an object means "still held".
+GRIPPER_SUBTREE = "link6"
+# MuJoCo Warp's per-world overflow bits that mean the constraint solver or its
+# line search stopped at its iteration limit (the step is still usable, only
+# less exact). They are counted per episode instead of printed per step.
+SOLVER_LIMIT_BITS = {"solver_iterations": int(mjw.OverflowType.ITERATIONS),
+                     "linesearch_iterations": int(mjw.OverflowType.LS_ITERATIONS)}
 
 @dataclasses.dataclass(frozen=True)
 class EnvConfig:
@@ -56,32 +72,33 @@ class TabletopEnv(Env):
 
   def __init__(self, config: EnvConfig = EnvConfig()):
     self.config = config
-    xml = scene.model_xml(self.name, self.objects_xml(), self.fixed_xml(), self.contact_xml())
+    xml = scene.model_xml(self.name, self.objects_xml(), sensors=self._gripper_contact_sensors())
     m = scene.compile_model(xml)
     m.opt.timestep = config.physics_timestep
     self.mj_model = m
-    self.mjx_model = mjx.put_model(m, impl=config.impl)
+    self.mjx_model = _without_solver_limit_prints(mjx.put_model(m, impl=config.impl))
     self.n_substeps = int(round(config.control_dt / config.physics_timestep))
     self._body = {m.body(i).name: i for i in range(m.nbody)}
     self._site = {m.site(i).name: i for i in range(m.nsite)}
     self._qadr = {m.joint(i).name: int(m.jnt_qposadr[i]) for i in range(m.njnt)}
-    self._vadr = {m.joint(i).name: int(m.jnt_dofadr[i]) for i in range(m.njnt)}
+    self._touch_adr = {b: int(m.sensor(f"gripper_touches_{b}").adr[0]) for b in self.objects}
 
   # ---- what a task provides -------------------------------------------------
   def objects_xml(self) -> str:
     raise NotImplementedError(f"{type(self).__name__} defines no objects")
 
-  def fixed_xml(self) -> str:
-    return ""
-
-  def contact_xml(self) -> str:
-    return ""
+  def _gripper_contact_sensors(self) -> str:
+    """One MuJoCo contact sensor per object: how many gripper contacts touch it."""
+    return "".join(
+        f'<contact name="gripper_touches_{b}" subtree1="{GRIPPER_SUBTREE}" body2="{b}" data="found" num="1"/>'
+        for b in self.objects)
 
   def sample_objects(self, key, qpos):
     """Return qpos with the objects placed by the task's randomisation."""
     return qpos
 
   def success(self, data) -> jax.Array:
+    """The completion predicate: True in a state where the task is done."""
     raise NotImplementedError
 
   def expert_plan(self) -> Sequence[Phase]:
@@ -99,6 +116,14 @@ class TabletopEnv(Env):
 
   def grasp_pos(self, data):
     return data.site_xpos[self._site["grasp"]]
+
+  def released(self, data, *bodies):
+    """No part of the gripper touches any of `bodies` (MuJoCo contact sensors).
+
+    Sensors are evaluated in the last substep's forward pass, 5 ms before the
+    state they come with: negligible against the 0.5 s hold.
+    """
+    return jnp.all(jnp.stack([data.sensordata[self._touch_adr[b]] == 0 for b in bodies]))
 
   def place(self, qpos, body, xyz, yaw=0.0):
     """Set a free body's pose in qpos (position and yaw about z)."""
@@ -144,8 +169,9 @@ class TabletopEnv(Env):
     data = data.replace(qpos=qpos, ctrl=robot.action_to_ctrl(jnp.asarray(robot.HOME_QPOS, jnp.float32)))
     data = mjx.forward(self.mjx_model, data)
     zero = jnp.zeros(())
-    metrics = {"success": zero, "nan": zero}
-    info = {"first_success_step": jnp.full((), -1, jnp.int32), "t": jnp.zeros((), jnp.int32)}
+    metrics = {"success": zero, "nan": zero, "overflow": _overflow(data)}
+    info = {"first_success_step": jnp.full((), -1, jnp.int32), "t": jnp.zeros((), jnp.int32),
+            "held": jnp.zeros((), jnp.int32)}
     return State(pipeline_state=data, obs=self.observation(data), reward=zero,
                  done=zero, metrics=metrics, info=info)
 
@@ -164,12 +190,16 @@ class TabletopEnv(Env):
     data = data.where(nan, prev)
     ok = self.success(data) & ~nan
     t = state.info["t"] + 1
-    first = jnp.where((state.info["first_success_step"] < 0) & ok, t, state.info["first_success_step"])
-    done = jnp.maximum(state.done, (ok | nan).astype(jnp.float32))
-    metrics = {"success": ok.astype(jnp.float32), "nan": jnp.maximum(state.metrics["nan"], nan.astype(jnp.float32))}
-    info = {**state.info, "first_success_step": first, "t": t}
+    held = jnp.where(ok, state.info["held"] + 1, 0)
+    declared = (held >= SUCCESS_HOLD_STEPS) & (state.info["first_success_step"] < 0)
+    first = jnp.where(declared, t - SUCCESS_HOLD_STEPS + 1, state.info["first_success_step"])
+    solved = (first >= 0).astype(jnp.float32)
+    done = jnp.maximum(state.done, jnp.maximum(solved, nan.astype(jnp.float32)))
+    metrics = {"success": solved, "nan": jnp.maximum(state.metrics["nan"], nan.astype(jnp.float32)),
+               "overflow": state.metrics["overflow"] | _overflow(data)}
+    info = {**state.info, "first_success_step": first, "t": t, "held": held}
     return state.replace(pipeline_state=data, obs=self.observation(data),
-                         reward=ok.astype(jnp.float32), done=done, metrics=metrics, info=info)
+                         reward=declared.astype(jnp.float32), done=done, metrics=metrics, info=info)
 
   def observation(self, data):
     q = data.qpos
@@ -181,6 +211,36 @@ class TabletopEnv(Env):
     parts = [jnp.concatenate([data.xpos[self._body[b]], data.xquat[self._body[b]]]) for b in self.objects]
     parts += [data.qpos[self._qadr[j]][None] for j in self.extra_joints]
     return jnp.concatenate(parts) if parts else jnp.zeros((0,))
+
+
+def _without_solver_limit_prints(mx):
+  """Stop MuJoCo Warp printing a line per world and step when the solver or its
+  line search hits its iteration limit; the overflow bits still record it.
+  Overflows that corrupt the physics (dropped contacts or constraints) still print."""
+  impl = getattr(mx.opt, "_impl", None)
+  if impl is None or not hasattr(impl, "warn_overflow"):
+    return mx  # the JAX implementation prints nothing per step
+  quiet = int(impl.warn_overflow) & ~sum(SOLVER_LIMIT_BITS.values())
+  return mx.replace(opt=mx.opt.replace(_impl=impl.replace(warn_overflow=quiet)))
+
+
+def _overflow(data):
+  """The physics' overflow bitmask since reset (0 where the implementation has none)."""
+  impl = getattr(data, "_impl", None)
+  bits = getattr(impl, "overflow", None)
+  return jnp.zeros((), jnp.int32) if bits is None else jnp.asarray(bits, jnp.int32).reshape(())
+
+
+def solver_limit_counts(overflow) -> dict:
+  """Episodes (of a batch's overflow bitmasks) whose solver or line search hit its limit."""
+  import numpy as np
+  bits = np.asarray(overflow).astype(np.int64)
+  return {name: int(((bits & bit) != 0).sum()) for name, bit in SOLVER_LIMIT_BITS.items()}
+
+
+def rests_on(p, target, height, tol=0.01):
+  """Object origin `p` sits `height` above `target`'s origin, within `tol` (m)."""
+  return jnp.abs(p[2] - target[2] - height) < tol
 
 
 def upright(mat, threshold=0.99):

@@ -1,7 +1,8 @@
 """Expert rollouts: the whole batch, every control step, in one jitted loop.
 
-`lax.while_loop` stops as soon as every episode has ended (success, NaN) or
-the task's time limit is reached, so short tasks do not pay for long ones.
+`lax.while_loop` stops as soon as every episode has ended (success declared,
+NaN) or the task's time limit is reached, so short tasks do not pay for long
+ones.
 """
 
 from __future__ import annotations
@@ -22,6 +23,7 @@ class ExpertResult(NamedTuple):
   first_success_step: np.ndarray  # [B] control steps to success (-1 if never)
   nan: np.ndarray  # [B] bool: physics blew up
   steps_run: int  # control steps simulated for the batch
+  overflow: np.ndarray  # [B] int: the physics' overflow bits (envs.env.solver_limit_counts)
 
 
 def reset_keys(seed: int, num: int, offset: int = 0) -> jax.Array:
@@ -49,13 +51,13 @@ def _expert_loop(benv: BatchedEnv):
       return t + 1, benv.step(state, action), xs
 
     t, state, _ = jax.lax.while_loop(cond, body, (jnp.zeros((), jnp.int32), state, xs))
-    return t, state.info["first_success_step"], state.metrics["nan"]
+    return t, state.info["first_success_step"], state.metrics["nan"], state.metrics["overflow"]
 
   return jax.jit(run)
 
 
 def run_expert(benv: BatchedEnv, keys: jax.Array) -> ExpertResult:
-  t, first, nan = jax.device_get(_expert_loop(benv)(keys))
+  t, first, nan, overflow = jax.device_get(_expert_loop(benv)(keys))
   first = np.asarray(first)
   return ExpertResult(success=first >= 0, first_success_step=first,
-                      nan=np.asarray(nan) > 0, steps_run=int(t))
+                      nan=np.asarray(nan) > 0, steps_run=int(t), overflow=np.asarray(overflow))

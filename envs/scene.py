@@ -52,7 +52,7 @@ def ring(radius, height, thickness, n, rgba, z0=0.0, bottom=True, bottom_size=No
   return geoms
 
 
-def model_xml(name: str, objects: str, extra_world: str = "", contact: str = "") -> str:
+def model_xml(name: str, objects: str, sensors: str = "") -> str:
   arm, actuators = robot.arm_mjcf()
   return f"""
 <mujoco model="{name}">
@@ -66,15 +66,16 @@ def model_xml(name: str, objects: str, extra_world: str = "", contact: str = "")
     <geom name="table" type="plane" size="0.9 0.7 0.01" pos="0.3 0 0" rgba="0.72 0.58 0.42 1" friction="1 0.01 0.001"/>
     {arm}
     {objects}
-    {extra_world}
   </worldbody>
   <contact>
     <exclude body1="finger_left" body2="finger_right"/>
-    {contact}
   </contact>
   <actuator>
     {actuators}
   </actuator>
+  <sensor>
+    {sensors}
+  </sensor>
 </mujoco>
 """
 
@@ -85,19 +86,21 @@ def compile_model(xml: str) -> mujoco.MjModel:
 
 # ---- object geometry shared by several tasks ------------------------------------
 
-BOWL_RADIUS, BOWL_HEIGHT = 0.05, 0.03
-CUP_RADIUS, CUP_HEIGHT = 0.028, 0.07
+BOWL_RADIUS, BOWL_HEIGHT, BOWL_FLOOR = 0.05, 0.03, 0.006
+CUP_RADIUS, CUP_HEIGHT, CUP_FLOOR = 0.028, 0.07, 0.005
 PLATE_HALF, PLATE_THICK = 0.055, 0.006
 BLOCK_HALF = 0.015
+# A container's origin is the underside of its floor: what rests inside it
+# rests at FLOOR + its own half height above that origin.
 
 
 def bowl(name, pos, rgba):
-  walls = ring(BOWL_RADIUS, BOWL_HEIGHT, 0.006, 8, rgba, bottom_size=BOWL_RADIUS * 0.8)
+  walls = ring(BOWL_RADIUS, BOWL_HEIGHT, BOWL_FLOOR, 8, rgba, bottom_size=BOWL_RADIUS * 0.8)
   return free_body(name, pos, walls, mass=0.15)
 
 
 def cup(name, pos, rgba):
-  walls = ring(CUP_RADIUS, CUP_HEIGHT, 0.005, 8, rgba, bottom_size=CUP_RADIUS * 0.8)
+  walls = ring(CUP_RADIUS, CUP_HEIGHT, CUP_FLOOR, 8, rgba, bottom_size=CUP_RADIUS * 0.8)
   return free_body(name, pos, walls, mass=0.08)
 
 

@@ -7,6 +7,8 @@ import pytest
 
 import envs
 from envs import robot, rollout
+from envs.env import SUCCESS_HOLD_STEPS, EnvConfig
+from envs.tasks.drawer_open import DrawerOpen
 
 
 @pytest.fixture(scope="module")
@@ -62,3 +64,30 @@ def test_rendered_observations_show_the_scene_from_both_cameras():
   s = jax.jit(env.step)(s, s.obs["joint_pos"])  # images come back after every step too
   assert s.obs["side_rgb"].shape == (2, 24, 32, 3)
   jax.effects_barrier()  # finish Warp's render calls while their context is alive
+
+
+class _Scripted(DrawerOpen):
+  """The drawer task with a predicate that holds on chosen control steps only."""
+  holds_on = frozenset(range(3, 12)) | frozenset(range(14, 40))  # 9 steps, a break, then 26
+
+  def success(self, data):
+    step = jnp.round(data.time / self.config.control_dt).astype(jnp.int32)
+    return jnp.isin(step, jnp.asarray(sorted(self.holds_on)))
+
+
+def test_success_is_declared_after_the_predicate_held_for_half_a_second():
+  """A run of 9 steps (an object passing through its target) is not a success;
+  the next run is, declared after 10 steps, and dated from the run's first step."""
+  assert SUCCESS_HOLD_STEPS == 10
+  benv = envs.batched.BatchedEnv(_Scripted(EnvConfig(num_envs=1)), 1)
+  s = benv.reset(rollout.reset_keys(0, 1))
+  step = jax.jit(benv.step)
+  action = jnp.asarray(robot.HOME_QPOS, jnp.float32)[None]
+  done_at = None
+  for t in range(1, 30):
+    s = step(s, action)
+    if done_at is None and float(s.done[0]) > 0:
+      done_at = t
+  assert done_at == 14 + SUCCESS_HOLD_STEPS - 1
+  assert int(s.info["first_success_step"][0]) == 14
+  assert float(s.metrics["success"][0]) == 1.0

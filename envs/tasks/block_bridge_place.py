@@ -3,16 +3,19 @@
 DISCOVERSE's check mixes one piece's x with the other's y; we implement its
 intent: the two bridge pieces parallel and side by side with their centres
 3 cm +- 2 mm apart across their width and aligned along their length (within
-1 cm), and both blocks lying flat on top of the bridge (above the pieces'
-top, long axis horizontal, within 0.11 m of the bridge's centre, the
-DISCOVERSE tolerance). Every object starts within +-1 mm of its nominal pose.
+1 cm), and both blocks lying flat on top of the bridge (long axis
+horizontal, within 0.11 m of the bridge's centre, the DISCOVERSE tolerance).
+DISCOVERSE reads it once, after its expert has released and retreated;
+checked every step, it also needs each block resting on the pieces' tops
+(not carried above them) and no object touched by the gripper. Every object
+starts within +-1 mm of its nominal pose.
 """
 
 import jax
 import jax.numpy as jnp
 
 from envs import expert, scene
-from envs.env import TabletopEnv, upright
+from envs.env import TabletopEnv, rests_on, upright
 
 PIECE = (0.01, 0.03, 0.015)  # half sizes: 2 cm wide (x), 6 cm long (y), 3 cm tall
 BLOCK = (0.025, 0.01, 0.01)  # 5 cm long (x), lying flat
@@ -51,9 +54,9 @@ class BlockBridgePlace(TabletopEnv):
     for blk in BLOCKS:
       p, m = self.pos(data, blk), self.mat(data, blk)
       flat = (jnp.abs(m[2, 0]) < 0.1) & upright(m)
-      on_top = p[2] > 2 * PIECE[2] + 0.5 * BLOCK[2]
+      on_top = rests_on(p, centre, PIECE[2] + BLOCK[2])
       bridge &= flat & on_top & (jnp.linalg.norm((p - centre)[:2]) < 0.11)
-    return bridge
+    return bridge & self.released(data, *self.objects)
 
   def expert_plan(self):
     # Fingers close along y: across a block's 2 cm width and along a piece's

@@ -1,10 +1,16 @@
-"""Block place (B.P., few-shot): put the green block into the pink bowl."""
+"""Block place (B.P., few-shot): put the green block into the pink bowl and let go.
+
+Extends DISCOVERSE's check (bowl upright, block within 2 cm of it in xy, read
+once after its expert has released and retreated) with what an every-step
+check needs: the block rests on the bowl's floor and the gripper no longer
+touches it.
+"""
 
 import jax
 import jax.numpy as jnp
 
 from envs import expert, scene
-from envs.env import TabletopEnv, upright, uniform_offset, xy_dist
+from envs.env import TabletopEnv, rests_on, upright, uniform_offset, xy_dist
 
 H = scene.BLOCK_HALF
 
@@ -27,7 +33,9 @@ class BlockPlace(TabletopEnv):
     return self.place(qpos, "bowl", jnp.append(bowl, 0.0))
 
   def success(self, data):
-    return upright(self.mat(data, "bowl")) & (xy_dist(self.pos(data, "block"), self.pos(data, "bowl")) < 0.02)
+    block, bowl = self.pos(data, "block"), self.pos(data, "bowl")
+    return (upright(self.mat(data, "bowl")) & (xy_dist(block, bowl) < 0.02)
+            & rests_on(block, bowl, scene.BOWL_FLOOR + H) & self.released(data, "block"))
 
   def expert_plan(self):
     above_bowl = lambda env, d: env.pos(d, "bowl") + jnp.array([0.0, 0.0, scene.BOWL_HEIGHT + H + 0.01])

@@ -1,5 +1,10 @@
 """Cuplid cover (C.C., few-shot): cup onto the plate, then the lid onto the cup.
 
+Extends DISCOVERSE's check (cup upright on the plate, lid on the cup, both
+within 2 cm in xy, read once after its expert has released and retreated)
+with what an every-step check needs: the cup stands on the plate, the lid
+sits on the cup's rim, and the gripper touches neither.
+
 The lid starts on a wooden block. DISCOVERSE shifts the cup by 0.05-0.10 m
 along x; we read that as a one-sided offset U(0.05, 0.10).
 """
@@ -8,8 +13,8 @@ import jax
 import jax.numpy as jnp
 
 from envs import expert, scene
-from envs.env import TabletopEnv, upright, uniform_offset, xy_dist
-from envs.tasks.coffeecup_place import CUP_GRASP
+from envs.env import TabletopEnv, rests_on, uniform_offset, xy_dist
+from envs.tasks.coffeecup_place import CUP_GRASP, cup_on_plate
 
 LID_HALF, LID_THICK = 0.036, 0.006
 KNOB = (0.008, 0.008, 0.012)
@@ -43,9 +48,9 @@ class CuplidCover(TabletopEnv):
     return self.place(qpos, "lid", jnp.append(lid, 2 * STAND[2]))
 
   def success(self, data):
-    cup = self.pos(data, "cup")
-    return (upright(self.mat(data, "cup")) & (xy_dist(cup, self.pos(data, "plate")) < 0.02)
-            & (xy_dist(self.pos(data, "lid"), cup) < 0.02))
+    cup, lid = self.pos(data, "cup"), self.pos(data, "lid")
+    return (cup_on_plate(self, data) & (xy_dist(lid, cup) < 0.02) & rests_on(lid, cup, scene.CUP_HEIGHT)
+            & self.released(data, "cup", "lid"))
 
   def expert_plan(self):
     on_plate = lambda env, d: env.pos(d, "plate") + jnp.array([0.0, 0.0, scene.PLATE_THICK + 0.003])

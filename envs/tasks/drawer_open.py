@@ -1,4 +1,9 @@
-"""Drawer open (D.O.): pull the cabinet's drawer out by its handle (no randomisation)."""
+"""Drawer open (D.O.): pull the cabinet's drawer out by its handle (no randomisation).
+
+DISCOVERSE's check (drawer slid out past a threshold) is already a completed
+state: an opened drawer stays open, so it is used as is (held 0.5 s like every
+success).
+"""
 
 import jax.numpy as jnp
 

@@ -1,11 +1,17 @@
-"""Jujube place (J.Pl., few-shot): drop the jujube into the coffee cup."""
+"""Jujube place (J.Pl., few-shot): drop the jujube into the coffee cup.
+
+Extends DISCOVERSE's check (cup upright, jujube within 2 cm of it in xy, read
+once after its expert has released and retreated) with what an every-step
+check needs: the jujube lies on the cup's floor and the gripper no longer
+touches it.
+"""
 
 import jax
 import jax.numpy as jnp
 
 from envs import expert, scene
-from envs.env import TabletopEnv, upright, uniform_offset, xy_dist
-from envs.tasks.jujube_pick import RADIUS, jujube_xml
+from envs.env import TabletopEnv, rests_on, upright, uniform_offset, xy_dist
+from envs.tasks.jujube_pick import RADIUS, REST_Z, jujube_xml
 
 
 class JujubePlace(TabletopEnv):
@@ -21,11 +27,13 @@ class JujubePlace(TabletopEnv):
     k1, k2 = jax.random.split(key)
     jujube = self.nominal("jujube")[:2] + uniform_offset(k1, (0.10, 0.05))
     cup = self.nominal("cup")[:2] + uniform_offset(k2, (0.10, 0.05))
-    qpos = self.place(qpos, "jujube", jnp.append(jujube, RADIUS - 0.001))
+    qpos = self.place(qpos, "jujube", jnp.append(jujube, REST_Z))
     return self.place(qpos, "cup", jnp.append(cup, 0.0))
 
   def success(self, data):
-    return upright(self.mat(data, "cup")) & (xy_dist(self.pos(data, "jujube"), self.pos(data, "cup")) < 0.02)
+    jujube, cup = self.pos(data, "jujube"), self.pos(data, "cup")
+    return (upright(self.mat(data, "cup")) & (xy_dist(jujube, cup) < 0.02)
+            & rests_on(jujube, cup, scene.CUP_FLOOR + REST_Z) & self.released(data, "jujube"))
 
   def expert_plan(self):
     above_cup = lambda env, d: env.pos(d, "cup") + jnp.array([0.0, 0.0, scene.CUP_HEIGHT + RADIUS + 0.012])

@@ -1,10 +1,16 @@
-"""Kiwi place (K.P.): put the kiwi into the bowl."""
+"""Kiwi place (K.P.): put the kiwi into the bowl and let go.
+
+Extends DISCOVERSE's check (bowl upright, kiwi within 2 cm of the bowl in
+xy, read once after its expert has released and retreated): checked every
+step, xy alone passes a kiwi carried above the bowl, so ours also asks that
+the kiwi rests on the bowl's floor and that the gripper no longer touches it.
+"""
 
 import jax
 import jax.numpy as jnp
 
 from envs import expert, scene
-from envs.env import TabletopEnv, upright, uniform_offset, xy_dist
+from envs.env import TabletopEnv, rests_on, upright, uniform_offset, xy_dist
 
 KIWI = (0.026, 0.022, 0.021)
 
@@ -28,7 +34,9 @@ class KiwiPlace(TabletopEnv):
     return self.place(qpos, "bowl", jnp.append(bowl, 0.0))
 
   def success(self, data):
-    return upright(self.mat(data, "bowl")) & (xy_dist(self.pos(data, "kiwi"), self.pos(data, "bowl")) < 0.02)
+    kiwi, bowl = self.pos(data, "kiwi"), self.pos(data, "bowl")
+    return (upright(self.mat(data, "bowl")) & (xy_dist(kiwi, bowl) < 0.02)
+            & rests_on(kiwi, bowl, scene.BOWL_FLOOR + KIWI[2]) & self.released(data, "kiwi"))
 
   def expert_plan(self):
     above_bowl = lambda env, d: env.pos(d, "bowl") + jnp.array([0.0, 0.0, scene.BOWL_HEIGHT + KIWI[2] + 0.01])

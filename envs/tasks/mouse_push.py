@@ -1,4 +1,9 @@
-"""Mouse push (M.P., few-shot): push the mouse onto the mouse pad with the closed gripper."""
+"""Mouse push (M.P., few-shot): push the mouse onto the mouse pad with the closed gripper.
+
+Success is DISCOVERSE's check as is (mouse within 4 cm of the pad's centre in
+xy): a pushed mouse lies on the table, so the state is the completion (held
+0.5 s like every success; the pusher may still touch it).
+"""
 
 import jax
 import jax.numpy as jnp

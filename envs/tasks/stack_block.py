@@ -1,10 +1,16 @@
-"""Stack block (S.B.): stack green on blue, then red on green."""
+"""Stack block (S.B.): stack green on blue, then red on green.
+
+Extends DISCOVERSE's check (blue upright, green and red within 2 cm of blue
+in xy, read once after its expert has released and retreated) with what an
+every-step check needs: green rests on blue and red on green, and the
+gripper touches neither.
+"""
 
 import jax
 import jax.numpy as jnp
 
 from envs import expert, scene
-from envs.env import TabletopEnv, upright, xy_dist
+from envs.env import TabletopEnv, rests_on, upright, xy_dist
 
 H = scene.BLOCK_HALF
 BLOCKS = ("red", "green", "blue")
@@ -46,9 +52,9 @@ class StackBlock(TabletopEnv):
     return qpos
 
   def success(self, data):
-    blue = self.pos(data, "blue")
-    return (upright(self.mat(data, "blue")) & (xy_dist(self.pos(data, "green"), blue) < 0.02)
-            & (xy_dist(self.pos(data, "red"), blue) < 0.02))
+    red, green, blue = (self.pos(data, b) for b in BLOCKS)
+    return (upright(self.mat(data, "blue")) & (xy_dist(green, blue) < 0.02) & (xy_dist(red, blue) < 0.02)
+            & rests_on(green, blue, 2 * H) & rests_on(red, green, 2 * H) & self.released(data, "red", "green"))
 
   def expert_plan(self):
     def on(below):
