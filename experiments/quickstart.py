@@ -7,7 +7,8 @@
 2. multi-task pretraining of ACT and ACT+SkillPlug at the `quick` preset;
 3. closed-loop evaluation of both on the pretraining tasks (paired trials);
 4. few-shot adaptation of both to the unseen task, then its evaluation;
-5. the two success tables, printed and written beside the runs.
+5. the tables (success rate, policy queries per successful episode, and the
+   same over paired trials), printed and written beside the runs.
 
 Stages 2-4 run as two processes, one per policy: the physics and the quick
 networks keep about one core busy each, so the two cores of a laptop-class
@@ -64,8 +65,13 @@ def policy_pipeline(policy: str, out: Path, trials: int, demos: int, seed: int) 
   t0 = time.time()
   adapted = fewshot.adapt_and_evaluate([run], FEWSHOT_TASKSET, demos, trials, batch=trials, progress=False)
   stage("few-shot adapt + evaluate", t0)
-  return dict(run=str(run), pretrain=pretrain["results"], fewshot=adapted["results"], stages_s=stages,
-              mean_queries_per_success=pretrain["mean_queries_per_success"])
+  return dict(run=str(run), pretrain=pretrain["results"], fewshot=adapted["results"], stages_s=stages)
+
+
+def merged_summary(parts: list[dict], key: str, tasks) -> dict:
+  """The workers' results of one stage and their tables: rows are grouped over both workers' runs."""
+  results = [r for part in parts for r in part[key]]
+  return dict(results=results, **tables.summarise(results, tasks))
 
 
 def run(out: Path, trials: int, demos: int, seed: int) -> dict:
@@ -87,16 +93,8 @@ def run(out: Path, trials: int, demos: int, seed: int) -> dict:
   for p, part in zip(POLICIES, parts):
     stages.update({f"{p} {k}": v for k, v in part["stages_s"].items()})
 
-  def table(key: str, tasks) -> dict:
-    rates = {}
-    for part in parts:
-      for r in part[key]:
-        rates.setdefault(r["policy"], {}).setdefault(r["task"], []).append(r["success_rate"])
-    return dict(results=[r for part in parts for r in part[key]], table=tables.success_table(rates, tasks))
-
-  pretrain = table("pretrain", envs.taskset(PRETRAIN_TASKSET))
-  pretrain["mean_queries_per_success"] = {k: v for part in parts for k, v in part["mean_queries_per_success"].items()}
-  return dict(pretrain=pretrain, fewshot=table("fewshot", envs.taskset(FEWSHOT_TASKSET)), stages_s=stages,
+  return dict(pretrain=merged_summary(parts, "pretrain", envs.taskset(PRETRAIN_TASKSET)),
+              fewshot=merged_summary(parts, "fewshot", envs.taskset(FEWSHOT_TASKSET)), stages_s=stages,
               wall_s=round(time.time() - t_start, 1), trials=trials, demos=demos, seed=seed,
               device=str(jax.devices()[0]), pretrain_taskset=PRETRAIN_TASKSET,
               fewshot_taskset=FEWSHOT_TASKSET, runs=[part["run"] for part in parts])
@@ -105,12 +103,10 @@ def run(out: Path, trials: int, demos: int, seed: int) -> dict:
 def report(result: dict) -> str:
   t, d = result["trials"], result["demos"]
   lines = [
-      f"Multi-task success rate (%), quick preset, {d} demos per task, {t} paired trials per task:", "",
-      tables.markdown(result["pretrain"]["table"]), "",
-      f"Few-shot success rate (%) on the unseen task, {d} demos, {t} trials:", "",
-      tables.markdown(result["fewshot"]["table"]), "",
-      "Mean policy queries per successful episode: " + ", ".join(
-          f"{k}: {v:.1f}" if v else f"{k}: -" for k, v in result["pretrain"]["mean_queries_per_success"].items()),
+      "Multi-task:", "",
+      tables.report(result["pretrain"], f"quick preset, {d} demos per task, {t} paired trials per task"), "",
+      "Few-shot on the unseen task:", "",
+      tables.report(result["fewshot"], f"{d} demos, {t} paired trials"), "",
       "Stages (s): " + ", ".join(f"{k} {v:.0f}" for k, v in result["stages_s"].items()),
       f"Runs: {', '.join(result['runs'])}",
       f"Wall time: {result['wall_s'] / 60:.1f} min on {result['device']} "

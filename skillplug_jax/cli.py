@@ -28,21 +28,28 @@ def cmd_experts(args) -> int:
     succ = np.concatenate([r.success for r in results])[:args.episodes]
     first = np.concatenate([r.first_success_step for r in results])[:args.episodes]
     nan = np.concatenate([r.nan for r in results])[:args.episodes]
+    overflow = np.concatenate([r.overflow for r in results])[:args.episodes]
     dt = env.env.config.control_dt
     rows.append(dict(
         task=name, abbr=env.env.abbr, episodes=int(len(succ)), success_rate=float(succ.mean()),
         mean_steps=float(first[succ].mean()) if succ.any() else None,
         mean_seconds=float(first[succ].mean() * dt) if succ.any() else None,
         time_limit_s=env.env.time_limit_s, nan_episodes=int(nan.sum()),
+        solver_limit_episodes=envs.env.solver_limit_counts(overflow),
         wall_s=round(time.time() - t0, 1)))
   print(f"\nScripted experts, {args.episodes} episodes per task (seed {args.seed}, "
         f"impl={args.impl}, {jax.devices()[0].platform}):\n")
-  print("| task | abbr | success | mean length (steps / s) | limit (s) | NaN | wall (s) |")
-  print("|---|---|---|---|---|---|---|")
+  print("| task | abbr | success | steps to success (steps / s) | limit (s) | NaN | solver / line-search limit | wall (s) |")
+  print("|---|---|---|---|---|---|---|---|")
   for r in rows:
     length = "-" if r["mean_steps"] is None else f"{r['mean_steps']:.1f} / {r['mean_seconds']:.2f}"
+    lim = r["solver_limit_episodes"]
     print(f"| {r['task']} | {r['abbr']} | {100 * r['success_rate']:.1f}% | {length} | "
-          f"{r['time_limit_s']:.0f} | {r['nan_episodes']} | {r['wall_s']} |")
+          f"{r['time_limit_s']:.0f} | {r['nan_episodes']} | {lim['solver_iterations']} / "
+          f"{lim['linesearch_iterations']} | {r['wall_s']} |")
+  print("\nSteps to success: control steps to the first step of the 0.5 s the success held. The solver "
+        "column counts episodes in which MuJoCo Warp's solver or its line search stopped at its "
+        "iteration limit at least once (its per-step warning is silenced).")
   if args.json:
     payload = dict(taskset=args.taskset, episodes=args.episodes, seed=args.seed, impl=args.impl,
                    device=str(jax.devices()[0]), tasks=rows)
@@ -98,19 +105,11 @@ def cmd_eval(args) -> int:
   video_dir = args.video_dir or (f"{args.out}_videos" if args.out else "videos")
   out = protocol.evaluate_runs(runs, tasks, args.trials, seed=args.seed, batch=args.batch,
                                query_every=args.query_every, videos=args.videos, video_dir=video_dir)
-  md = tables.markdown(out["table"])
-  print(f"\nSuccess rate (%), {args.trials} trials per task (seed {args.seed}); "
-        "mean±SE over training seeds where there are several:\n")
-  print(md)
-  print("\nmean policy queries per successful episode: "
-        + ", ".join(f"{k}: {v:.1f}" if v else f"{k}: -" for k, v in out["mean_queries_per_success"].items()))
+  md = tables.report(out, f"{args.trials} paired trials per task (seed {args.seed})")
+  print("\n" + md + "\n")
+  print(rows_legend(out["rows"]))
   if args.out:
-    from skillplug_jax.atomic_json import write_json_atomic, write_text_atomic
-    base = Path(args.out)
-    write_json_atomic(base.with_suffix(".json"), out)
-    write_text_atomic(base.with_suffix(".md"), md + "\n")
-    write_text_atomic(base.with_suffix(".csv"), tables.csv(out["table"]))
-    print(f"wrote {base.with_suffix('.json')}, .md, .csv")
+    _write_tables(Path(args.out), out, md)
   if args.videos:
     print(f"videos of the first {args.videos} trials per task: {video_dir}/<run>/<task>_trialNN.gif")
   return 0
@@ -135,21 +134,38 @@ def cmd_fewshot(args) -> int:
   from pathlib import Path
 
   from skillplug_jax import fewshot
-  from skillplug_jax.atomic_json import write_json_atomic, write_text_atomic
   from skillplug_jax.evaluate import tables
 
   runs = [r for part in args.runs for r in part.split(",") if r]
   out = fewshot.adapt_and_evaluate(runs, args.taskset, args.demos, args.trials, args.seed, args.batch,
                                    steps=args.steps)
-  md = tables.markdown(out["table"])
-  print(f"\nFew-shot success rate (%), {args.demos} demos per task, {args.trials} trials per task:\n")
-  print(md)
+  md = tables.report(out, f"few-shot, {args.demos} demos per task, {args.trials} paired trials per task")
+  print("\n" + md + "\n")
+  print(rows_legend(out["rows"]))
   if args.out:
-    base = Path(args.out)
-    write_json_atomic(base.with_suffix(".json"), out)
-    write_text_atomic(base.with_suffix(".md"), md + "\n")
-    print(f"wrote {base.with_suffix('.json')}, .md")
+    _write_tables(Path(args.out), out, md)
   return 0
+
+
+def rows_legend(rows: dict) -> str:
+  """One line per table row: its training seeds and the settings it overrides (the JSON has them all)."""
+  lines = []
+  for name, row in rows.items():
+    changed = ", ".join(f"{k}={v}" for k, v in row["overrides"].items()) or "none"
+    lines.append(f"{name}: {row['config']['preset']} preset, seeds {row['seeds']}; overridden: {changed}")
+  return "\n".join(lines)
+
+
+def _write_tables(base, out: dict, md: str) -> None:
+  """OUT.json (everything), OUT.md (the three tables), OUT.csv (success) and OUT.queries[_paired].csv."""
+  from skillplug_jax.atomic_json import write_json_atomic, write_text_atomic
+  from skillplug_jax.evaluate import tables
+  write_json_atomic(base.with_suffix(".json"), out)
+  write_text_atomic(base.with_suffix(".md"), md + "\n")
+  write_text_atomic(base.with_suffix(".csv"), tables.csv(out["table"]))
+  write_text_atomic(base.with_suffix(".queries.csv"), tables.csv(out["queries"]))
+  write_text_atomic(base.with_suffix(".queries_paired.csv"), tables.csv(out["queries_paired"]))
+  print(f"wrote {base.with_suffix('.json')}, .md, .csv, .queries.csv, .queries_paired.csv")
 
 
 def _dir_mb(path) -> float:
@@ -206,7 +222,7 @@ def build_parser() -> argparse.ArgumentParser:
   v.add_argument("--batch", type=int, default=50, help="environments simulated at once")
   v.add_argument("--query-every", type=int, default=1,
                  help="1: query every step with temporal ensembling; n > 1: open-loop chunks of n steps")
-  v.add_argument("--out", default="", help="write OUT.json, OUT.md and OUT.csv")
+  v.add_argument("--out", default="", help="write OUT.json, OUT.md, OUT.csv, OUT.queries.csv, OUT.queries_paired.csv")
   v.add_argument("--videos", type=int, default=0, help="GIFs (side camera) of the first N trials per task")
   v.add_argument("--video-dir", default="", help="where the GIFs go (default OUT_videos, or ./videos)")
   v.set_defaults(fn=cmd_eval)
@@ -222,7 +238,7 @@ def build_parser() -> argparse.ArgumentParser:
   f.add_argument("--trials", type=int, default=50)
   f.add_argument("--seed", type=int, default=1000)
   f.add_argument("--batch", type=int, default=50)
-  f.add_argument("--out", default="", help="write OUT.json and OUT.md")
+  f.add_argument("--out", default="", help="write OUT.json, OUT.md, OUT.csv, OUT.queries.csv, OUT.queries_paired.csv")
   f.set_defaults(fn=cmd_fewshot)
   return p
 

@@ -15,7 +15,7 @@ from pathlib import Path
 from typing import Sequence
 
 import envs
-from skillplug_jax.evaluate import protocol, tables
+from skillplug_jax.evaluate import groups, protocol, tables
 from skillplug_jax.evaluate.policy_controller import load_controller
 from skillplug_jax.model.freeze import FEWSHOT_TRAINABLE
 from skillplug_jax.train import checkpoint, loop
@@ -39,12 +39,18 @@ def fewshot_config(source: TrainConfig, source_dir: Path, task: str, taskset: st
 def adapt_and_evaluate(source_runs: Sequence[str | Path], taskset: str = "discoverse_fewshot4",
                        demos: int = 10, trials: int = 50, seed: int = protocol.EVAL_SEED,
                        batch: int = 50, steps: int | None = None, progress: bool = True) -> dict:
+  """Fine-tune every source run on every task of `taskset`, evaluate, tabulate.
+
+  Rows are the source runs' training configurations (`groups`): the
+  few-shot settings are the same for every row of one call, and the seeds
+  of one source configuration are one row.
+  """
   tasks = envs.taskset(taskset)
-  results, rates = [], {}
+  results = []
   for src in source_runs:
     src = Path(src)
     source = checkpoint.read_config(src)
-    label = "ACT+SkillPlug" if source.model.is_skillplug else "ACT"
+    label = groups.policy_label(source)
     for task in tasks:
       cfg = fewshot_config(source, src, task, taskset, demos, steps)
       if progress:
@@ -55,8 +61,8 @@ def adapt_and_evaluate(source_runs: Sequence[str | Path], taskset: str = "discov
       h, w = cfg.model.image_size
       r = protocol.evaluate_task(task, controller, trials, seed, batch, render=cfg.model.use_images,
                                  image_size=(w, h))
-      r.update(run=str(run), source=str(src), policy=label, train_seed=source.seed)
+      r.update(run=str(run), source=str(src), policy=label, train_seed=source.seed,
+               config=groups.training_key(source), trainable=list(cfg.trainable), steps=cfg.max_steps)
       results.append(r)
-      rates.setdefault(label, {}).setdefault(task, []).append(r["success_rate"])
   return dict(taskset=taskset, demos=demos, trials=trials, seed=seed, results=results,
-              table=tables.success_table(rates, tasks))
+              **tables.summarise(results, tasks))

@@ -1,7 +1,9 @@
 """Evaluation engine: the expert reproduced through it, NaN isolation, devices, videos, ensembling, tables."""
 
 import dataclasses
+import json
 import textwrap
+from typing import NamedTuple
 
 import imageio.v3 as iio
 import jax
@@ -12,9 +14,10 @@ import pytest
 import envs
 from envs import rollout as env_rollout
 from envs.batched import BatchedEnv
-from skillplug_jax.evaluate import protocol, tables
+from envs.env import SUCCESS_HOLD_STEPS
+from skillplug_jax.evaluate import groups, protocol, tables
 from skillplug_jax.evaluate.policy_controller import policy_controller, temporal_ensemble
-from skillplug_jax.evaluate.rollout import evaluate, expert_controller
+from skillplug_jax.evaluate.rollout import EpisodeResults, evaluate, expert_controller
 from skillplug_jax.model import config as model_config
 from skillplug_jax.model.policy import Policy
 from skillplug_jax.train import loop
@@ -36,7 +39,8 @@ def test_expert_through_engine_reproduces_expert(benv):
   assert ref.success.all()
   np.testing.assert_array_equal(got.success, ref.success)
   np.testing.assert_array_equal(got.first_success_step, ref.first_success_step)
-  np.testing.assert_array_equal(got.queries, ref.first_success_step)  # one query per step until success
+  # one query per step until success is declared, after the predicate held for SUCCESS_HOLD_STEPS
+  np.testing.assert_array_equal(got.queries, ref.first_success_step + SUCCESS_HOLD_STEPS - 1)
   assert not got.nan.any() and got.routing is None
 
 
@@ -67,7 +71,8 @@ def test_two_devices_match_one_and_videos_follow_episodes(tmp_path):
       import jax, numpy as np
       import envs
       from envs import rollout as R
-      from skillplug_jax.evaluate.rollout import evaluate, expert_controller, local_devices_for
+      from envs.env import SUCCESS_HOLD_STEPS
+      from skillplug_jax.evaluate.rollout import EpisodeResults, evaluate, expert_controller, local_devices_for
       envs.quiet_warp()
       devices = local_devices_for(4)
       assert len(devices) == 2 and local_devices_for(1) is None
@@ -82,7 +87,8 @@ def test_two_devices_match_one_and_videos_follow_episodes(tmp_path):
         np.testing.assert_array_equal(getattr(got, f), getattr(ref, f), err_msg=f)
       assert got.steps_run == ref.steps_run
       for i in range(2):
-        assert ref.frames[i].shape == (ref.first_success_step[i] + 1, 32, 32, 3), ref.frames[i].shape
+        # the start, then every step to the one that declared the success
+        assert ref.frames[i].shape == (ref.first_success_step[i] + SUCCESS_HOLD_STEPS, 32, 32, 3), ref.frames[i].shape
         assert np.abs(np.diff(ref.frames[i].astype(int), axis=0)).sum() > 0  # the arm moves
       try:
         evaluate(one, expert_controller(one), R.reset_keys(4, 8), devices)
@@ -155,25 +161,72 @@ def test_policy_in_the_loop_records_routing_and_queries():
   assert not np.allclose(evaluate(benv, c2, keys).routing, every.routing)
   fixed = evaluate(benv, policy_controller(m, params, stats, routing=[0.0, 1.0, 0.0]), keys)
   np.testing.assert_array_equal(fixed.routing[0], np.tile([0.0, 1.0, 0.0], (3, 1)))
-  # the action the env receives is the unnormalised chunk: mean + std * prediction
-  pred, _ = Policy(m).apply({"params": params}, {
-      "joint_pos": jnp.zeros((1, 7)), "object_state": jnp.zeros((1, envs.OBJECT_STATE_DIM))},
-      method=Policy.predict)
-  assert np.isfinite(np.asarray(pred)).all()
   with pytest.raises(ValueError, match="query_every must be in 1..8"):
     policy_controller(m, params, stats, query_every=9)
 
 
-def test_trials_are_paired_across_policies():
-  a, b = protocol.trial_keys(1000, 10), protocol.trial_keys(1000, 10)
-  np.testing.assert_array_equal(a, b)
-  np.testing.assert_array_equal(protocol.trial_keys(1000, 4), a[:4])  # batch size does not matter
-  e1, e2 = envs.make(TASK, num_envs=4), envs.make(TASK, num_envs=4)
-  s1, s2 = e1.reset(a[:4]), e2.reset(b[:4])
-  np.testing.assert_array_equal(s1.obs["object_state"], s2.obs["object_state"])
+class ObsOnly(NamedTuple):
+  obs: dict  # what a learned policy's controller reads of the environment state
+
+
+def test_controller_unnormalises_the_chunk():
+  """The controller feeds the policy (joint_pos - mean) / std and sends the env
+  prediction * std + mean (hand-chosen statistics), step t of the chunk at step t,
+  the fixed routing's chunk when one is given."""
+  m, params, _ = _tiny_policy()
+  rng = np.random.default_rng(5)
+  stats = {"action": {"mean": [0.1 * i - 0.2 for i in range(7)], "std": [0.5, 2.0, 0.1, 1.5, 3.0, 0.05, 0.7]},
+           "joint_pos": {"mean": [0.3] * 7, "std": [0.2, 0.5, 1.0, 2.0, 0.25, 4.0, 0.1]}}
+  raw = {"joint_pos": jnp.asarray(rng.normal(size=(2, 7)), jnp.float32),
+         "object_state": jnp.asarray(rng.normal(size=(2, 7)), jnp.float32)}  # a task's own width
+  state = ObsOnly(raw)
+  a_mean, a_std = (np.asarray(stats["action"][k], np.float32) for k in ("mean", "std"))
+  j_mean, j_std = (np.asarray(stats["joint_pos"][k], np.float32) for k in ("mean", "std"))
+  policy_input = {"joint_pos": (raw["joint_pos"] - j_mean) / j_std,
+                  "object_state": envs.padded_object_state(raw["object_state"])}
+  sent = {}
+  for routing in (None, (0.0, 0.0, 1.0)):
+    pred, _ = Policy(m).apply({"params": params}, policy_input, routing, method=Policy.predict)
+    sent[routing] = np.asarray(pred) * a_std + a_mean
+    c = policy_controller(m, params, stats, query_every=m.chunk, routing=routing)  # open loop: no averaging
+    cstate, act = c.init(state), jax.jit(c.act)
+    for t in range(m.chunk):
+      action, cstate, _ = act(c.weights, cstate, state, jnp.int32(t))
+      np.testing.assert_allclose(action, sent[routing][:, t], rtol=1e-5, atol=1e-5,
+                                 err_msg=f"routing {routing}, step {t}")
+  assert not np.allclose(sent[None], sent[(0.0, 0.0, 1.0)], atol=1e-3)  # the fixed skill is used
+
+
+def test_trials_are_paired_across_policies(monkeypatch):
+  """Trial i starts from the same state in every evaluate_task call, whatever the policy
+  and the batch size (a partial last batch included); different trials start apart."""
+  trials = 5
+  starts = []
+
+  def start_of_each_episode(benv, controller, keys, devices=None, frames=0):
+    """In place of the rollout: report each episode's initial object state as its 'query count'."""
+    obj = np.asarray(benv.reset(keys).obs["object_state"])
+    starts.append(obj)
+    codes = np.asarray([hash(np.round(o, 5).tobytes()) % 2**31 for o in obj])
+    b = len(codes)
+    return EpisodeResults(success=np.ones(b, bool), first_success_step=codes, nan=np.zeros(b, bool),
+                          queries=codes, routing=None, steps_run=1)
+
+  monkeypatch.setattr(protocol, "evaluate", start_of_each_episode)
+  act, skillplug = _tiny_policy("act"), _tiny_policy("skillplug")
+  a = protocol.evaluate_task(TASK, policy_controller(*act), trials, batch=2)
+  b = protocol.evaluate_task(TASK, policy_controller(*skillplug), trials, batch=5)
+  assert len(starts) == 3 + 1  # 2 + 2 + 1 (padded) trials, then all 5 at once
+  assert a["trial_queries"] == b["trial_queries"] and len(a["trial_queries"]) == trials
+  benv = envs.make(TASK, num_envs=trials)
+  direct = np.asarray(benv.reset(protocol.trial_keys(protocol.EVAL_SEED, trials)).obs["object_state"])
+  np.testing.assert_allclose(np.concatenate(starts[:3])[:trials], direct, atol=1e-6)
+  np.testing.assert_allclose(starts[3], direct, atol=1e-6)
+  assert len(set(a["trial_queries"])) == trials  # every trial its own start
+  assert all(not np.allclose(direct[i], direct[j]) for i in range(trials) for j in range(i + 1, trials))
   # evaluation starts are not the demonstrations' starts (data seed 0)
-  demo = e1.reset(env_rollout.reset_keys(0, 4))
-  assert not np.allclose(demo.obs["object_state"], s1.obs["object_state"])
+  demo = np.asarray(benv.reset(env_rollout.reset_keys(0, trials)).obs["object_state"])
+  assert not np.allclose(demo, direct)
 
 
 def test_success_table_mean_and_standard_error():
@@ -193,6 +246,108 @@ def test_success_table_mean_and_standard_error():
   assert tables.csv(t).splitlines()[2] == "ACT+SkillPlug,1,100.00,,50.00,,75.00,"
   with pytest.raises(ValueError, match="different numbers of seeds"):
     tables.success_table({"X": {"jujube_pick": [1.0], "kiwi_place": [1.0, 0.0]}}, ["jujube_pick", "kiwi_place"])
+
+
+TASKS2 = ["jujube_pick", "drawer_open"]
+
+
+def _run_results(policy: str, seed: int, outcomes: dict, *settings) -> list[dict]:
+  """One run's per-task results as `protocol.evaluate_runs` records them (no simulation)."""
+  cfg = train_config.override(train_config.preset("quick", policy),
+                              ["taskset=quickstart3", f"seed={seed}", f"workdir=runs/{policy}{seed}", *settings])
+  return [dict(task=t, config=groups.training_key(cfg), train_seed=seed, policy=groups.policy_label(cfg),
+               run=str(cfg.run_dir), success_rate=float(np.mean(succ)), trial_success=[bool(x) for x in succ],
+               trial_queries=list(q)) for t, (succ, q) in outcomes.items()]
+
+
+def _three_configurations() -> list[dict]:
+  """K=4 (three seeds, written to different places and logged differently), K=2, ACT; 4 trials per task."""
+  k4 = [_run_results("skillplug", 0, {"jujube_pick": ([1, 1, 0, 1], [10, 20, 99, 30]),
+                                       "drawer_open": ([1, 0, 0, 0], [40, 99, 99, 99])}),
+        _run_results("skillplug", 1, {"jujube_pick": ([1, 1, 1, 1], [12, 22, 32, 42]),
+                                       "drawer_open": ([0, 0, 0, 0], [99, 99, 99, 99])}, "log_every=7"),
+        _run_results("skillplug", 2, {"jujube_pick": ([0, 1, 0, 1], [99, 24, 99, 34]),
+                                       "drawer_open": ([1, 1, 0, 0], [44, 54, 99, 99])}, "data_dir=elsewhere")]
+  k2 = _run_results("skillplug", 0, {"jujube_pick": ([1, 1, 0, 0], [5, 15, 99, 99]),
+                                      "drawer_open": ([1, 1, 1, 1], [1, 2, 3, 4])}, "model.num_skills=2")
+  act = _run_results("act", 0, {"jujube_pick": ([1, 1, 1, 1], [50, 50, 50, 50]),
+                                 "drawer_open": ([1, 0, 1, 1], [60, 99, 60, 60])})
+  return [r for run in k4 for r in run] + k2 + act
+
+
+def test_rows_are_training_configurations_and_seeds_aggregate():
+  out = tables.summarise(_three_configurations(), TASKS2)
+  k4, k2 = "ACT+SkillPlug (num_skills=4)", "ACT+SkillPlug (num_skills=2)"
+  assert list(out["rows"]) == [k4, k2, "ACT"]  # ACT ignores num_skills: its name does not say it
+  assert out["rows"][k4]["seeds"] == [0, 1, 2] and out["rows"][k2]["seeds"] == [0]
+  assert out["rows"][k4]["config"]["model.num_skills"] == 4 and "seed" not in out["rows"][k4]["config"]
+  assert out["rows"][k2]["overrides"] == {"model.num_skills": 2, "taskset": "quickstart3"}
+  json.dumps(out)  # the JSON keeps every row's full training key
+  success = out["table"]["rows"][k4]
+  assert success["seeds"] == 3
+  mean, se = success["cells"]["jujube_pick"]
+  assert mean == pytest.approx(75.0) and se == pytest.approx(np.std([75, 100, 50], ddof=1) / np.sqrt(3))
+  assert success["cells"]["Avg."] == (pytest.approx(50.0), pytest.approx(0.0))  # per seed: 50, 50, 50
+  assert out["table"]["rows"][k2]["cells"]["Avg."] == (pytest.approx(75.0), None)
+  md = tables.markdown(out["table"])
+  assert f"| {k4} | 75.0±14.4 | 25.0±14.4 | 50.0±0.0 |" in md and f"| {k2} | 50.0 | 100.0 | 75.0 |" in md
+  # the same configuration and seed evaluated twice is an error, not a fourth seed
+  with pytest.raises(ValueError, match="evaluated twice"):
+    tables.summarise(_three_configurations() + _three_configurations()[:1], TASKS2)
+
+
+def test_queries_tables_per_seed_and_over_paired_trials():
+  out = tables.summarise(_three_configurations(), TASKS2)
+  k4, k2 = "ACT+SkillPlug (num_skills=4)", "ACT+SkillPlug (num_skills=2)"
+  q = out["queries"]["rows"]
+  # each seed's mean over its own successes: J.P. 20, 27, 29; D.O. 40, (none), 49
+  assert q[k4]["cells"]["jujube_pick"] == (pytest.approx(76 / 3),
+                                           pytest.approx(np.std([20, 27, 29], ddof=1) / np.sqrt(3)))
+  assert q[k4]["cells"]["drawer_open"] == (pytest.approx(44.5), pytest.approx(4.5)) and q[k4]["n"]["drawer_open"] == 2
+  assert q[k4]["cells"]["Avg."][0] == pytest.approx(np.mean([30, 27, 39]))  # per seed, over the tasks it solved
+  assert q[k2]["cells"]["drawer_open"] == (2.5, None) and q["ACT"]["cells"]["drawer_open"] == (60.0, None)
+  # paired: J.P. trial 1 is the only trial all five runs solved; no D.O. trial was (seed 1 solved none)
+  p = out["queries_paired"]
+  assert p["paired_trials"] == {"jujube_pick": 1, "drawer_open": 0}
+  assert p["rows"][k4]["cells"]["jujube_pick"] == (pytest.approx(22.0), pytest.approx(2 / np.sqrt(3)))
+  assert p["rows"][k2]["cells"]["jujube_pick"] == (15.0, None)
+  assert p["rows"]["ACT"]["cells"]["jujube_pick"] == (50.0, None)
+  assert all(row["cells"]["drawer_open"] is None for row in p["rows"].values())
+  md = tables.markdown(p)
+  assert md.splitlines()[0] == "| Method | J.P. | D.O. | Avg. |"
+  assert f"| {k4} | 22.0±1.2 | - | 22.0±1.2 |" in md and "| ACT | 50.0 | - | 50.0 |" in md
+  assert md.endswith("Trials every run solved: J.P. 1/4, D.O. 0/4")
+  assert tables.csv(p).splitlines()[3] == "ACT,1,50.00,,,,50.00,"
+
+
+def test_eval_cli_and_quickstart_print_and_write_every_table(tmp_path, monkeypatch, capsys):
+  from experiments import quickstart
+  from skillplug_jax import cli
+  results = _three_configurations()
+  monkeypatch.setattr(protocol, "evaluate_runs", lambda runs, tasks, trials, **kw: dict(
+      trials=trials, results=results, **tables.summarise(results, tasks)))
+  assert cli.main(["eval", "--ckpt", "any", "--taskset", ",".join(TASKS2), "--trials", "4",
+                   "--out", str(tmp_path / "ev")]) == 0
+  printed = capsys.readouterr().out
+  for title in ("Success rate (%)", "Policy queries per successful episode (each",
+                "over the paired trials", "Trials every run solved"):
+    assert printed.count(title) == 1, title
+  assert "ACT+SkillPlug (num_skills=2): quick preset, seeds [0]" in printed
+  saved = json.loads((tmp_path / "ev.json").read_text())
+  assert saved["rows"]["ACT+SkillPlug (num_skills=4)"]["seeds"] == [0, 1, 2]
+  assert (tmp_path / "ev.md").read_text().count("| Method |") == 3
+  assert (tmp_path / "ev.queries_paired.csv").read_text().startswith("method,seeds,J.P._mean")
+  assert '"ACT+SkillPlug (num_skills=2)"' not in (tmp_path / "ev.csv").read_text()  # no comma: not quoted
+  # the quickstart merges its two workers' runs into one set of rows
+  act = [r for r in results if r["policy"] == "ACT"]
+  sp = [r for r in results if r["train_seed"] == 0 and r["config"]["model.num_skills"] == 4 and r["policy"] != "ACT"]
+  parts = [dict(pretrain=act, fewshot=act[:1]), dict(pretrain=sp, fewshot=sp[:1])]
+  text = quickstart.report(dict(
+      pretrain=quickstart.merged_summary(parts, "pretrain", TASKS2),
+      fewshot=quickstart.merged_summary(parts, "fewshot", TASKS2[:1]),
+      trials=4, demos=10, stages_s={"pretrain": 1.0}, runs=["a", "b"], wall_s=60.0, device="cpu"))
+  assert text.count("| ACT+SkillPlug | ") == 6 and text.count("| ACT | ") == 6  # 3 tables x 2 stages
+  assert "Trials every run solved: J.P. 3/4, D.O. 1/4" in text
 
 
 def test_eval_cli_expands_seed_templates_and_rejects_bad_ones(capsys):

@@ -100,6 +100,9 @@ def test_total_loss_weights_each_term():
   assert float(m["loss"]) == float(loss)
 
 
-def test_default_weights_keep_acts_cvae_weight():
-  w = losses.LossWeights()
-  assert w.rec == 1.0 and w.cvae_kl == 10.0
+def test_default_weights_give_acts_objective():
+  """Without weights, ACT's loss is ACT's own: L1 + 10 KL (its CVAE weight)."""
+  batch = dict(actions=jnp.array([[[1.], [7.]]]), action_mask=jnp.array([[True, False]]))
+  loss, m = losses.total_loss(_outputs(False), batch)
+  assert float(m["rec"]) == pytest.approx(1.0) and float(m["cvae_kl"]) == pytest.approx(0.5)
+  assert float(loss) == pytest.approx(1.0 + 10.0 * 0.5)

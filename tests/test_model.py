@@ -8,12 +8,14 @@ XLA's optimisation passes (these tests check values, not speed).
 
 import dataclasses
 
+import flax.linen as nn
 import jax
 import jax.numpy as jnp
 import numpy as np
 import optax
 import pytest
 
+import envs
 from skillplug_jax import losses
 from skillplug_jax.model import (GROUPS, ModelConfig, Policy, budget, masked_optimizer, paper,
                                  param_groups, quick, trainable_mask)
@@ -40,7 +42,7 @@ def make_batch(cfg: ModelConfig, seed: int = 0):
   rng = np.random.default_rng(seed)
   batch = dict(
       joint_pos=rng.normal(size=(B, cfg.joint_dim)).astype(np.float32),
-      object_state=rng.normal(size=(B, cfg.object_state_dim)).astype(np.float32),
+      object_state=rng.normal(size=(B, envs.OBJECT_STATE_DIM)).astype(np.float32),
       actions=rng.normal(size=(B, cfg.chunk, cfg.action_dim)).astype(np.float32),
       # the second sample's episode ends after 2 steps
       action_mask=np.arange(cfg.chunk)[None] < np.array([cfg.chunk, 2])[:, None],
@@ -70,20 +72,34 @@ def shapes(tree):
 
 
 # ---- presets -----------------------------------------------------------------
-def test_presets():
-  p, b, q = paper(), budget(), quick()
-  assert (p.hidden, p.heads, p.ff, p.enc_layers, p.dec_layers, p.latent_dim, p.chunk,
-          p.num_skills, p.backbone_width) == (512, 8, 3200, 4, 7, 32, 25, 4, 64)
-  assert p.use_images and b.use_images and not q.use_images
-  assert not p.decoder_first_layer_only
-  assert (b.hidden, b.ff, b.backbone_width) == (256, 1024, 32)
-  assert (q.hidden, q.heads, q.ff, q.enc_layers, q.dec_layers, q.cvae_enc_layers, q.num_skills) \
-      == (64, 4, 256, 2, 2, 1, 4)
-  assert dataclasses.replace(q, policy="act").policy == "act"
-  with pytest.raises(dataclasses.FrozenInstanceError):
-    q.hidden = 3
-  with pytest.raises(ValueError):
-    dataclasses.replace(q, policy="diffusion")
+def _built(cfg: ModelConfig) -> dict:
+  """What a built model's parameter shapes say it is (eval_shape: no compile)."""
+  p = jax.eval_shape(Policy(cfg).init, jax.random.key(0), make_batch(cfg))["params"]
+  layers = lambda tree: sum(1 for k in tree if k.startswith("layer"))  # noqa: E731
+  enc = p["encoder"]["transformer"]
+  return dict(
+      hidden=p["action_head"]["queries"].shape[1], chunk=p["action_head"]["queries"].shape[0],
+      heads=enc["layer1"]["self_attn"]["query"]["kernel"].shape[1], ff=enc["layer1"]["ff"]["fc1"]["kernel"].shape[1],
+      enc_layers=layers(enc), dec_layers=layers(p["action_head"]), cvae_enc_layers=layers(p["cvae"]["transformer"]),
+      latent_dim=p["cvae"]["latent_proj"]["kernel"].shape[1] // 2,
+      num_skills=p["skills"]["embeddings"].shape[0] if "skills" in p else None,
+      backbone_width=p["encoder"]["backbone"]["stem"]["kernel"].shape[-1] if "backbone" in p["encoder"] else None)
+
+
+def test_presets_build_the_models_they_describe():
+  """The paper preset builds the paper's ACT (+ K=4); every preset's sizes reach the model."""
+  assert _built(paper()) == dict(hidden=512, chunk=25, heads=8, ff=3200, enc_layers=4, dec_layers=7,
+                                 cvae_enc_layers=4, latent_dim=32, num_skills=4, backbone_width=64)
+  assert _built(budget()) == dict(hidden=256, chunk=25, heads=8, ff=1024, enc_layers=4, dec_layers=4,
+                                  cvae_enc_layers=2, latent_dim=32, num_skills=4, backbone_width=32)
+  assert _built(quick()) == dict(hidden=64, chunk=25, heads=4, ff=256, enc_layers=2, dec_layers=2,
+                                 cvae_enc_layers=1, latent_dim=32, num_skills=4, backbone_width=None)
+  assert _built(dataclasses.replace(quick(), policy="act"))["num_skills"] is None
+  assert not paper().decoder_first_layer_only  # the whole decoder is read, not ACT's first layer
+  with pytest.raises(ValueError, match="policy must be one of"):
+    dataclasses.replace(quick(), policy="diffusion")
+  with pytest.raises(ValueError, match="divisible by heads"):
+    dataclasses.replace(quick(), heads=3)
 
 
 # ---- shapes of every module (eval_shape: no compile) --------------------------
@@ -258,11 +274,61 @@ def test_predict_ignores_actions_and_posterior(tiny_model):
   chunk2, routing2 = predict(poisoned, other)
   np.testing.assert_array_equal(chunk, chunk2)
   np.testing.assert_array_equal(routing, routing2)
-  # fixed-skill routing overrides the router
-  fixed = jnp.eye(cfg.num_skills)[0]
-  _, used = jax.jit(lambda v, o, r: Policy(cfg).apply(v, o, r, method=Policy.predict),
-                    compiler_options=FAST_COMPILE)(variables, batch, fixed)
-  np.testing.assert_array_equal(used, jnp.broadcast_to(fixed, (B, cfg.num_skills)))
+
+
+def test_fixed_routing_acts_as_the_router_would(tiny_model):
+  """A one-hot routing on skill k gives skill k's chunk (different skills, different
+  chunks), the same chunk as when the router itself outputs that one-hot."""
+  cfg, model, batch, variables, _, _ = tiny_model
+  K = cfg.num_skills
+  onehot = jnp.eye(K)
+  fixed = jax.jit(lambda v, o, r: model.apply(v, o, r, method=Policy.predict), compiler_options=FAST_COMPILE)
+  chunks = []
+  for k in range(K):
+    chunk, used = fixed(variables, batch, onehot[k])
+    np.testing.assert_array_equal(used, jnp.broadcast_to(onehot[k], (B, K)))
+    chunks.append(np.asarray(chunk))
+  for j in range(K):
+    for k in range(j + 1, K):
+      assert not np.allclose(chunks[j], chunks[k], atol=1e-4), (j, k)
+
+  def router_says(k):
+    def intercept(next_fun, args, kwargs, context):
+      if isinstance(context.module, Router) and context.method_name == "__call__":
+        return jnp.broadcast_to(onehot[k], (args[0].shape[0], K))
+      return next_fun(*args, **kwargs)
+    with nn.intercept_methods(intercept):
+      return jax.jit(lambda v, o: model.apply(v, o, method=Policy.predict), compiler_options=FAST_COMPILE)(
+          variables, batch)
+
+  for k in (0, K - 1):
+    chunk, routing = router_says(k)
+    np.testing.assert_array_equal(routing, jnp.broadcast_to(onehot[k], (B, K)))
+    np.testing.assert_allclose(chunk, chunks[k], rtol=1e-6, atol=1e-6)
+
+
+@pytest.mark.parametrize("policy", ["skillplug", "act"])
+def test_training_forward_with_zero_latents_equals_predict(policy):
+  """The training pass (train=False: latents at their means) with the CVAE latent and
+  every skill's z at zero is the inference path: same chunk, same routing."""
+  cfg = tiny(policy)
+  model, batch = Policy(cfg), make_batch(cfg)
+  variables = random_params(model, batch, seed=3)
+  forward = jax.jit(lambda v: model.apply(v, batch, train=False), compiler_options=FAST_COMPILE)
+  chunk, routing = jax.jit(lambda v: model.apply(v, batch, method=Policy.predict),
+                           compiler_options=FAST_COMPILE)(variables)
+  # random latent heads put the latents away from zero: then the passes differ
+  assert not np.allclose(forward(variables)["pred_actions"], chunk, atol=1e-4)
+  zero = lambda tree: jax.tree.map(jnp.zeros_like, tree)  # noqa: E731
+  params = dict(variables["params"])
+  params["cvae"] = {**params["cvae"], "latent_proj": zero(params["cvae"]["latent_proj"])}  # mu = 0
+  if policy == "skillplug":  # mu_k = 0, so z_k = 0 and the offset W z_k is zero
+    params["posterior"] = {**params["posterior"], "q_fc2": zero(params["posterior"]["q_fc2"])}
+  out = forward({"params": params})
+  np.testing.assert_array_equal(out["cvae_mu"], 0.0)
+  np.testing.assert_allclose(out["pred_actions"], chunk, rtol=1e-5, atol=1e-6)
+  if policy == "skillplug":
+    np.testing.assert_allclose(out["router_probs"], routing, rtol=1e-6, atol=1e-7)
 
 
 def _group_grads(model, variables, batch):
@@ -299,6 +365,21 @@ def test_freezing_and_bsa_gradients(tiny_model):
       assert any(np.any(a != b) for a, b in zip(after, before)), name
     else:
       assert all(np.array_equal(a, b) for a, b in zip(after, before)), name
+
+
+def test_image_policy_ignores_object_state():
+  """The privileged object state never reaches an image policy; its images do."""
+  cfg = tiny("skillplug", images=True, enc_layers=1, dec_layers=1)
+  model, batch = Policy(cfg), make_batch(cfg)
+  variables = random_params(model, batch)
+  predict = jax.jit(lambda v, o: model.apply(v, o, method=Policy.predict), compiler_options=FAST_COMPILE)
+  chunk, routing = predict(variables, batch)
+  moved = dict(batch, object_state=batch["object_state"] * 10.0 + 3.0)
+  chunk2, routing2 = predict(variables, moved)
+  np.testing.assert_array_equal(chunk2, chunk)
+  np.testing.assert_array_equal(routing2, routing)
+  other_view = dict(batch, side_rgb=255 - batch["side_rgb"])
+  assert not np.allclose(predict(variables, other_view)[0], chunk, atol=1e-4)
 
 
 def test_image_policy_runs_and_losses_are_finite():

@@ -20,7 +20,7 @@ from tqdm import tqdm
 
 import envs
 from envs import rollout as env_rollout
-from skillplug_jax.evaluate import tables
+from skillplug_jax.evaluate import groups, tables
 from skillplug_jax.evaluate.policy_controller import load_controller
 from skillplug_jax.evaluate.rollout import Controller, EpisodeResults, evaluate, local_devices_for
 
@@ -36,6 +36,10 @@ def evaluate_task(task: str, controller: Controller, trials: int, seed: int = EV
                   render: bool = False, image_size=(64, 64), videos: int = 0,
                   video_dir: str | Path | None = None) -> dict:
   """Success rate and query counts of one controller on one task.
+
+  Besides the means, `trial_success` and `trial_queries` keep trial i's
+  outcome and query count (trial i: the same start for every policy), for
+  the paired tables.
 
   The batch is split over the local devices (GPUs only, when rendering: see
   `rollout.local_devices_for`). videos > 0 writes the side
@@ -69,7 +73,8 @@ def evaluate_task(task: str, controller: Controller, trials: int, seed: int = EV
               mean_queries_success=float(queries[success].mean()) if success.any() else None,
               mean_steps_success=float(take("first_success_step")[success].mean()) if success.any() else None,
               mean_routing=(np.nanmean(np.concatenate([r.reshape(-1, r.shape[-1]) for r in routing]), axis=0)
-                            .tolist() if routing else None))
+                            .tolist() if routing else None),
+              trial_success=success.tolist(), trial_queries=queries.tolist())
 
 
 def _write_videos(frames: list, out: Path, task: str, fps: int = 20) -> None:
@@ -85,31 +90,29 @@ def _write_videos(frames: list, out: Path, task: str, fps: int = 20) -> None:
 def evaluate_runs(run_dirs: Sequence[str | Path], tasks: Sequence[str], trials: int, seed: int = EVAL_SEED,
                   batch: int = 50, query_every: int = 1, progress: bool = True, videos: int = 0,
                   video_dir: str | Path = "videos") -> dict:
-  """Every run on every task; runs of the same policy label are that policy's training seeds.
+  """Every run on every task, and the tables (`tables.summarise`).
 
-  videos > 0: GIFs of each run's first trials in video_dir/<run name>/.
+  Runs whose training configurations differ only in the seed (and where
+  they were written) are one row's training seeds; any other difference
+  makes another row. videos > 0: GIFs of each run's first trials in
+  video_dir/<run name>/.
   """
-  results, rates = [], {}
+  results = []
   bar = tqdm(total=len(run_dirs) * len(tasks), desc="eval", unit="task", file=sys.stderr,
              disable=not progress)
   for run in run_dirs:
     controller, cfg = load_controller(run, query_every=query_every)
-    label = "ACT+SkillPlug" if cfg.model.is_skillplug else "ACT"
+    label = groups.policy_label(cfg)
     h, w = cfg.model.image_size
     for task in tasks:
       bar.set_postfix_str(f"{label} seed {cfg.seed} {task}")
       t0 = time.time()
       r = evaluate_task(task, controller, trials, seed, batch, render=cfg.model.use_images, image_size=(w, h),
                         videos=videos, video_dir=Path(video_dir) / Path(run).name)
-      r.update(run=str(run), policy=label, train_seed=cfg.seed, preset=cfg.preset, wall_s=round(time.time() - t0, 1))
+      r.update(run=str(run), policy=label, train_seed=cfg.seed, preset=cfg.preset, config=groups.training_key(cfg),
+               wall_s=round(time.time() - t0, 1))
       results.append(r)
-      rates.setdefault(label, {}).setdefault(task, []).append(r["success_rate"])
       bar.update(1)
   bar.close()
-  table = tables.success_table(rates, tasks)
-  queries = {}
-  for label in rates:
-    qs = [r["mean_queries_success"] for r in results if r["policy"] == label and r["mean_queries_success"]]
-    queries[label] = float(np.mean(qs)) if qs else None
   return dict(trials=trials, seed=seed, query_every=query_every, device=str(jax.devices()[0]),
-              results=results, table=table, mean_queries_per_success=queries)
+              results=results, **tables.summarise(results, tasks))

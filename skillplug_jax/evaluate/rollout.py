@@ -10,8 +10,9 @@ the scripted expert also reads the privileged `state.pipeline_state`). The
 whole episode batch runs inside one `lax.while_loop` (render -> controller ->
 physics substeps per control step) that stops when every episode has ended or
 the task's time limit is reached; nothing returns to Python until then. An
-episode stops counting at its first success; a NaN state fails that episode
-only (the environment keeps its last finite state and marks it).
+episode ends when its success is declared (the task's predicate held for
+`SUCCESS_HOLD_STEPS`); a NaN state fails that episode only (the environment
+keeps its last finite state and marks it).
 
 With several local devices the episode batch is split over them with
 `shard_map`: each device runs the same loop on its share of environments
@@ -30,6 +31,7 @@ from jax.sharding import Mesh, PartitionSpec as P
 
 from envs import expert
 from envs.batched import BatchedEnv
+from envs.env import SUCCESS_HOLD_STEPS
 
 
 class Controller(NamedTuple):
@@ -50,6 +52,7 @@ class EpisodeResults(NamedTuple):
   routing: np.ndarray | None  # [T, B, K] routing weights at each query (NaN where none)
   steps_run: int
   frames: list | None = None  # side camera [T_i + 1, H, W, 3] uint8 of the first episodes: start to end
+  overflow: np.ndarray | None = None  # [B] int: the physics' overflow bits (envs.env.solver_limit_counts)
 
 
 def expert_controller(benv: BatchedEnv) -> Controller:
@@ -102,13 +105,14 @@ def _episode_loop(benv: BatchedEnv, init: Callable, act: Callable, k: int, devic
 
     c = jax.lax.while_loop(cond, body, carry)
     return dict(t=jnp.full((b,), c["t"]), first=c["state"].info["first_success_step"], nan=c["state"].metrics["nan"],
-                queries=c["queries"], routing=c["routing"], frames=c.get("frames", jnp.zeros((1, 0))))
+                overflow=c["state"].metrics["overflow"], queries=c["queries"], routing=c["routing"],
+                frames=c.get("frames", jnp.zeros((1, 0))))
 
   if devices is None:
     return jax.jit(run)
   mesh = Mesh(np.asarray(devices), ("batch",))
   per_env = P("batch")
-  out_specs = dict(t=per_env, first=per_env, nan=per_env, queries=per_env, routing=P(None, "batch"),
+  out_specs = dict(t=per_env, first=per_env, nan=per_env, overflow=per_env, queries=per_env, routing=P(None, "batch"),
                    frames=P(None, "batch"))
   # The physics is an opaque Warp call with no replication rules: skip the check.
   return jax.jit(jax.shard_map(run, mesh=mesh, in_specs=(P(), per_env), out_specs=out_specs,
@@ -152,8 +156,9 @@ def evaluate(benv: BatchedEnv, controller: Controller, keys: jax.Array,
   steps = int(ran.max())
   routing = np.asarray(out["routing"])[:steps] if controller.num_skills else None
   video = None
-  if frames:  # episode i from its start to its success, or to the last step run
-    ends = np.where(first >= 0, first, ran)
+  if frames:  # episode i from its start to the step its success was declared, or to the last step run
+    ends = np.where(first >= 0, first + SUCCESS_HOLD_STEPS - 1, ran)
     video = [np.asarray(out["frames"])[:ends[i] + 1, i] for i in range(frames)]
   return EpisodeResults(success=first >= 0, first_success_step=first, nan=np.asarray(out["nan"]) > 0,
-                        queries=np.asarray(out["queries"]), routing=routing, steps_run=steps, frames=video)
+                        queries=np.asarray(out["queries"]), routing=routing, steps_run=steps, frames=video,
+                        overflow=np.asarray(out["overflow"]))

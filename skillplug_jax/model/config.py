@@ -25,7 +25,6 @@ class ModelConfig:
   use_images: bool = True  # False: the state-only variant (object_state token)
   cameras: Tuple[str, ...] = ("side", "wrist")  # batch keys are f"{cam}_rgb"
   image_size: Tuple[int, int] = (64, 64)  # (H, W) of the rendered images
-  object_state_dim: int = 28
   joint_dim: int = 7
   action_dim: int = 7
   chunk: int = 25
