@@ -82,7 +82,10 @@ def taskset(name: str) -> tuple[str, ...]:
 
 def make(name: str, num_envs: int = 1, render: bool = False, image_size=(64, 64),
          impl: str = "warp", devices: tuple | None = None, **config) -> BatchedEnv:
-  """A batch of `num_envs` environments of task `name` (per device, when rendering on `devices`)."""
+  """A batch of `num_envs` environments of task `name` (per device, when rendering on `devices`).
+
+  image_size: (H, W) of both cameras' images, as everywhere in the project.
+  """
   if num_envs < 1:
     raise ValueError(f"num_envs must be >= 1, got {num_envs}")
   env = task_class(name)(EnvConfig(impl=impl, num_envs=num_envs, **config))

@@ -22,7 +22,8 @@ class BatchedEnv:
   """`num_envs` copies of a task: reset(keys[B]) and step(state, actions[B, 7]).
 
   With `render=True`, obs also holds `side_rgb` and `wrist_rgb` (uint8,
-  [B, H, W, 3]) from `mjx.render`; otherwise no image is made (state-only mode).
+  [B, H, W, 3], `image_size` = (H, W)) from `mjx.render`; otherwise no image
+  is made (state-only mode).
   """
 
   def __init__(self, env: TabletopEnv, num_envs: int, render: bool = False, image_size=(64, 64),
@@ -39,7 +40,7 @@ class BatchedEnv:
         raise ValueError("rendering needs the Warp implementation (EnvConfig(impl='warp'))")
       m = env.mj_model
       self._cam_ids = [m.camera(c).id for c in CAMERAS]
-      w, h = self.image_size
+      h, w = self.image_size
       warp_devices = None
       if devices is not None and len(devices) > 1:
         if any(d.platform != "gpu" for d in devices):
@@ -47,7 +48,7 @@ class BatchedEnv:
                            "so CPU shards would share one render context)")
         warp_devices = [f"cuda:{d.local_hardware_id}" for d in devices]
       self._ctx = mjx.create_render_context(
-          m, nworld=num_envs, devices=warp_devices, cam_res=(w, h), use_textures=False, use_shadows=False,
+          m, nworld=num_envs, devices=warp_devices, cam_res=(w, h), use_textures=False, use_shadows=False,  # Warp: (W, H)
           render_rgb=[True] * m.ncam, render_depth=[False] * m.ncam)
 
   @property

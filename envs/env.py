@@ -148,10 +148,6 @@ class TabletopEnv(Env):
   def action_size(self) -> int:
     return robot.ACTION_DIM
 
-  @property
-  def backend(self) -> str:
-    return f"mjx-{self.config.impl}"
-
   def _make_data(self):
     c = self.config
     if c.impl == "warp":

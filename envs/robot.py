@@ -25,7 +25,6 @@ UPPER_ARM = 0.28
 FOREARM = 0.26
 FOREARM_ROLL_OFFSET = 0.05  # joint4 sits this far along the forearm
 TOOL_LENGTH = 0.15  # wrist-pitch axis -> grasp point
-FINGER_TIP = 0.16  # wrist-pitch axis -> fingertips
 GRIPPER_OPEN = 0.04
 GRIPPER_CLOSED = 0.0
 

@@ -71,7 +71,7 @@ def main(argv=None):
   p.add_argument("--tasks", default="all", help="comma-separated task names, or 'all'")
   p.add_argument("--batches", default="16,64,256")
   p.add_argument("--render-batches", default="16,64", help="batches for the rendering runs ('' skips)")
-  p.add_argument("--render-size", default="64x64")
+  p.add_argument("--render-size", default="64x64", help="HxW of the rendered images")
   p.add_argument("--steps", type=int, default=10, help="control steps per timed run")
   p.add_argument("--repeats", type=int, default=2)
   p.add_argument("--out", default="results/bench_envs.json")

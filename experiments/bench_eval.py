@@ -57,8 +57,7 @@ def _best(fn, repeats: int) -> float:
 def bench(task: str, preset: str, policy: str, batch: int, steps: int, repeats: int) -> dict:
   cfg = config.preset(preset, policy)
   m = cfg.model
-  h, w = m.image_size
-  benv = _short_env(task, steps, batch, m.use_images, (w, h))
+  benv = _short_env(task, steps, batch, m.use_images, m.image_size)
   keys = env_rollout.reset_keys(0, batch)
   params = loop.init_params(cfg, jax.random.PRNGKey(0))
   stats = {"action": {"mean": list(robot.HOME_QPOS), "std": [0.01] * 7},
@@ -74,7 +73,7 @@ def bench(task: str, preset: str, policy: str, batch: int, steps: int, repeats: 
   t_policy = _best(engine, repeats)
   ran = out["r"].steps_run
   # bare: the same environments stepped with a fixed action
-  bare_env = _short_env(task, steps, batch, m.use_images, (w, h))
+  bare_env = _short_env(task, steps, batch, m.use_images, m.image_size)
   hold = jnp.tile(jnp.asarray(robot.HOME_QPOS, jnp.float32), (batch, 1))
   state = jax.jit(bare_env.reset)(keys)
   scan = jax.jit(lambda s: jax.lax.scan(lambda s, _: (bare_env.step(s, hold), None), s, None, length=ran)[0].done)

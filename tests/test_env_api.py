@@ -54,7 +54,7 @@ def test_a_nan_state_fails_its_own_episode_only(stack):
 
 
 def test_rendered_observations_show_the_scene_from_both_cameras():
-  env = envs.make("kiwi_place", num_envs=2, render=True, image_size=(32, 24))
+  env = envs.make("kiwi_place", num_envs=2, render=True, image_size=(24, 32))  # (H, W)
   s = env.reset(rollout.reset_keys(0, 2))
   side, wrist = np.asarray(s.obs["side_rgb"]), np.asarray(s.obs["wrist_rgb"])
   assert side.shape == wrist.shape == (2, 24, 32, 3) and side.dtype == np.uint8
