@@ -148,6 +148,10 @@ class TabletopEnv(Env):
   def action_size(self) -> int:
     return robot.ACTION_DIM
 
+  @property
+  def backend(self) -> str:  # an abstract property of Brax's Env
+    return f"mjx-{self.config.impl}"
+
   def _make_data(self):
     c = self.config
     if c.impl == "warp":

@@ -58,9 +58,8 @@ def adapt_and_evaluate(source_runs: Sequence[str | Path], taskset: str = "discov
               file=sys.stderr)
       run = loop.train(cfg, progress=progress)
       controller, _ = load_controller(run)
-      h, w = cfg.model.image_size
       r = protocol.evaluate_task(task, controller, trials, seed, batch, render=cfg.model.use_images,
-                                 image_size=(w, h))
+                                 image_size=cfg.model.image_size)
       r.update(run=str(run), source=str(src), policy=label, train_seed=source.seed,
                config=groups.training_key(source), trainable=list(cfg.trainable), steps=cfg.max_steps)
       results.append(r)

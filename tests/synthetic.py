@@ -16,7 +16,7 @@ def synthetic_episode(rng, length, images=None, success=True):
   obs = {"joint_pos": rng.normal(size=(length, 7)).astype(np.float32),
          "object_state": rng.normal(size=(length, D)).astype(np.float32)}
   if images is not None:
-    w, h = images
+    h, w = images
     for cam in ("side", "wrist"):
       obs[f"{cam}_rgb"] = rng.integers(0, 256, size=(length, h, w, 3), dtype=np.uint8)
   return Episode(observation=obs, action=rng.normal(size=(length, 7)).astype(np.float32),

@@ -169,9 +169,21 @@ def test_missing_and_incomplete_dataset(tmp_path):
     loader.load_demonstrations(half)
 
 
+def test_datasets_of_an_older_recording_format_are_refused(tmp_path):
+  """Format 1.0.0 episodes were cut before the release: never train on them silently."""
+  rng = np.random.default_rng(2)
+  path = write_synthetic(tmp_path, "old", rlds.DatasetSpec(("jujube_pick",), None),
+                         [rlds.EpisodeRecord("jujube_pick", 0, 0, synthetic_episode(rng, 5))])
+  assert loader.load_demonstrations(path).num_episodes == 1
+  info = path / "dataset_info.json"
+  info.write_text(json.dumps({**json.loads(info.read_text()), "version": "1.0.0"}))
+  with pytest.raises(DatasetError, match=f"dataset format 1.0.0, this code reads {rlds.FORMAT_VERSION}"):
+    loader.load_demonstrations(path)
+
+
 def test_image_and_task_mismatch(image_dataset, tmp_path):
   path, _ = image_dataset
-  with pytest.raises(DatasetError, match="images are 16x12, the config expects 64x64"):
+  with pytest.raises(DatasetError, match=r"images are 16x12 \(HxW\), the config expects 64x64"):
     loader.load_demonstrations(path, images=True, image_size=(64, 64))
   with pytest.raises(DatasetError, match="has no task"):
     loader.load_demonstrations(path, tasks=("stack_block",))
@@ -233,7 +245,22 @@ def test_corrupt_statistics(image_dataset, tmp_path):
   (copy / normalization.STATS_FILE).unlink()  # missing: recomputed and written beside it
   d = loader.load_demonstrations(copy)
   assert (copy / normalization.STATS_FILE).exists()
-  np.testing.assert_allclose(d.stats["action"]["std"], normalization.read_stats(path)["action"]["std"], rtol=1e-6)
+  assert normalization.read_stats(copy) == d.stats
+  # recomputed from every step of every episode: mean, population std, min, max
+  for key, steps in (("action", [r.episode.action for r in records]),
+                     ("joint_pos", [r.episode.observation["joint_pos"] for r in records])):
+    x = np.concatenate(steps).astype(np.float64)
+    mean = x.sum(0) / len(x)
+    np.testing.assert_allclose(d.stats[key]["mean"], mean, rtol=1e-6, atol=1e-9)
+    np.testing.assert_allclose(d.stats[key]["std"], np.sqrt(((x - mean) ** 2).sum(0) / len(x)), rtol=1e-6)
+    np.testing.assert_array_equal(d.stats[key]["min"], x.min(0))
+    np.testing.assert_array_equal(d.stats[key]["max"], x.max(0))
+  assert d.stats["num_steps"] == sum(len(r.episode.action) for r in records)
+  # a joint the experts never move: its std is clipped to MIN_STD, not 0 (no division by zero)
+  still = normalization.stats_of(np.tile([[0.5] * 6 + [1.0]], (4, 1)) + np.arange(4)[:, None] * np.eye(7)[0],
+                                 np.zeros((4, 7)))
+  assert still["action"]["std"] == pytest.approx([np.std([0.5, 1.5, 2.5, 3.5])] + [normalization.MIN_STD] * 6)
+  assert still["joint_pos"]["std"] == [normalization.MIN_STD] * 7
 
 
 # ---- generation with the real experts ---------------------------------------

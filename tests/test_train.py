@@ -9,13 +9,15 @@ import numpy as np
 import pytest
 
 from skillplug_jax import fewshot, losses
-from skillplug_jax.data import rlds
+from skillplug_jax.data import loader as data_loader
+from skillplug_jax.data import normalization, rlds
 from skillplug_jax.train import checkpoint, config, loop
 from skillplug_jax.train.scalars import read_metrics
 from host_devices import run_on_host_devices
 from synthetic import synthetic_episode, write_synthetic
 
 TASKS = ("jujube_pick", "kiwi_place")
+TARGET = "block_place"  # an unseen task for the few-shot runs
 
 
 @pytest.fixture(scope="module")
@@ -25,6 +27,14 @@ def data_dir(tmp_path_factory):
   records = [rlds.EpisodeRecord(task, 0, i, synthetic_episode(rng, int(rng.integers(8, 40))))
              for task in TASKS for i in range(3)]
   write_synthetic(root, "jujube_pick+kiwi_place_3demos_state_seed0", rlds.DatasetSpec(TASKS, None), records)
+  # the unseen task's demos: other actions and joint positions, so other statistics
+  target = []
+  for i in range(3):
+    ep = synthetic_episode(rng, int(rng.integers(8, 40)))
+    ep.action[:] = 3.0 * ep.action + 2.0
+    ep.observation["joint_pos"][:] = 4.0 * ep.observation["joint_pos"] - 1.0
+    target.append(rlds.EpisodeRecord(TARGET, 0, i, ep))
+  write_synthetic(root, f"{TARGET}_3demos_state_seed0", rlds.DatasetSpec((TARGET,), None), target)
   return root
 
 
@@ -87,28 +97,47 @@ def test_four_devices_match_one(data_dir, tmp_path):
     np.testing.assert_allclose(x, y, rtol=1e-4, atol=1e-4)
 
 
-def test_frozen_groups_stay_bit_identical(data_dir, tmp_path):
-  source = loop.train(tiny(data_dir, tmp_path / "src", "skillplug", "max_steps=3"), progress=False)
-  few = tiny(data_dir, tmp_path / "few", "skillplug", f"init_from={source}", "trainable=router,action_head",
-             "max_steps=3")
-  loop.train(few, progress=False)
+def _changed_groups(source, adapted) -> set:
   _, before, _ = loop.load_params(source)
-  _, after, _ = loop.load_params(few.run_dir)
-  for group in before:
-    same = all(np.array_equal(x, y) for x, y in zip(leaves(before[group]), leaves(after[group])))
-    assert same == (group not in ("router", "action_head")), group
-  # the frozen encoder keeps reading inputs normalised with the source run's statistics
-  assert (few.run_dir / "norm_stats.json").read_text() == (source / "norm_stats.json").read_text()
+  _, after, _ = loop.load_params(adapted)
+  assert set(before) == set(after)
+  return {g for g in before if not all(np.array_equal(x, y) for x, y in zip(leaves(before[g]), leaves(after[g])))}
 
 
-def test_fewshot_configs_follow_the_paper(tmp_path):
-  for policy, trainable in (("skillplug", ("action_head", "router")), ("act", ("action_head",))):
-    src = config.preset("quick", policy)
-    cfg = fewshot.fewshot_config(src, tmp_path / "src", "mouse_push", "discoverse_fewshot4", 10)
-    assert cfg.trainable == trainable
-    assert (cfg.taskset, cfg.data_taskset, cfg.demos) == ("mouse_push", "discoverse_fewshot4", 10)
-    assert cfg.init_from == str(tmp_path / "src") and cfg.max_steps == fewshot.FEWSHOT_STEPS["quick"]
-    assert cfg.model == src.model and cfg.run_dir == tmp_path / "src_fewshot" / "mouse_push"
+def test_skillplug_fewshot_trains_router_and_head_on_source_statistics(data_dir, tmp_path, monkeypatch):
+  """The paper's SkillPlug few-shot run (`fewshot_config`): router and action head train,
+  every other group stays bit-identical, and the target's batches are normalised with
+  the source run's statistics (those its frozen encoder learned on), not the target's."""
+  src_cfg = tiny(data_dir, tmp_path / "src", "skillplug", "max_steps=3")
+  source = loop.train(src_cfg, progress=False)
+  few = fewshot.fewshot_config(src_cfg, source, TARGET, TARGET, 3, steps=3)
+  normalised_with = []
+  real = data_loader.ChunkLoader
+  monkeypatch.setattr(data_loader, "ChunkLoader",
+                      lambda data, *a, **kw: (normalised_with.append(data.stats), real(data, *a, **kw))[1])
+  loop.train(few, progress=False)
+  assert _changed_groups(source, few.run_dir) == {"router", "action_head"}
+  source_stats = checkpoint.read_stats(source)
+  target_stats = normalization.read_stats(data_dir / f"{TARGET}_3demos_state_seed0")
+  assert not np.allclose(target_stats["action"]["mean"], source_stats["action"]["mean"], atol=0.5)
+  assert not np.allclose(target_stats["joint_pos"]["std"], source_stats["joint_pos"]["std"], atol=0.5)
+  assert normalised_with == [source_stats]
+  assert checkpoint.read_stats(few.run_dir) == source_stats  # the controller un-normalises with them too
+
+
+def test_act_fewshot_end_to_end(data_dir, tmp_path):
+  """ACT's few-shot run: only its action head trains, from the source's statistics, and
+  the adapted run is evaluated closed loop into the few-shot tables."""
+  source = loop.train(tiny(data_dir, tmp_path / "src", "act", "max_steps=3"), progress=False)
+  out = fewshot.adapt_and_evaluate([source], TARGET, demos=3, trials=2, batch=2, steps=3, progress=False)
+  (r,) = out["results"]
+  assert (r["task"], r["trainable"], r["steps"]) == (TARGET, ["action_head"], 3)
+  assert loop.load_params(r["run"])[2] == 3
+  assert _changed_groups(source, r["run"]) == {"action_head"}  # encoder and CVAE bit-identical
+  assert checkpoint.read_stats(r["run"]) == checkpoint.read_stats(source)
+  assert len(r["trial_success"]) == len(r["trial_queries"]) == 2
+  assert list(out["rows"]) == ["ACT"] and out["rows"]["ACT"]["seeds"] == [0]
+  assert out["table"]["rows"]["ACT"]["cells"][TARGET][0] == 100 * r["success_rate"]
 
 
 def test_nan_loss_stops_and_keeps_checkpoint(data_dir, tmp_path, monkeypatch):

@@ -1,6 +1,6 @@
 """Generate a demonstration dataset: vectorised experts, successes only, written atomically.
 
-Work is staged per task (`<out>/.<name>.staging/<task>.npz`, each file
+Work is staged per task (`<out>/.<name>.staging-v<format>/<task>.npz`, each file
 written by one rename), so a killed run resumes with the tasks it finished.
 The tfds dataset is then built in `<out>/.<name>.building/` and moved to
 `<out>/<name>/` by a rename: a dataset directory either is complete or does
@@ -32,7 +32,7 @@ class DemoConfig:
   taskset: str = "discoverse7"  # taskset name or comma-separated task names
   demos: int = 300  # successful episodes kept per task
   images: bool = True
-  image_size: tuple[int, int] = (64, 64)
+  image_size: tuple[int, int] = (64, 64)  # (H, W)
   seed: int = 0
   batch: int = 64  # environments simulated at once
   impl: str = "warp"
@@ -69,7 +69,8 @@ def make_demos(cfg: DemoConfig, out: str | os.PathLike = "results/datasets", pro
       print(f"reusing {final}", file=sys.stderr)
     return final
 
-  staging = Path(out) / f".{cfg.name}.staging"
+  # Staged episodes are only reused by the recording format that made them.
+  staging = Path(out) / f".{cfg.name}.staging-v{rlds.FORMAT_VERSION}"
   staging.mkdir(parents=True, exist_ok=True)
   bar = tqdm(total=cfg.demos * len(tasks), desc="demos kept", unit="ep", file=sys.stderr,
              disable=not progress, dynamic_ncols=True)

@@ -72,7 +72,7 @@ def load_demonstrations(path: str | Path, *, tasks: Sequence[str] | None = None,
       raise DatasetError(f"{path}: the config uses images but the dataset is state-only "
                          "(generate it with images)")
     if image_size is not None and tuple(image_size) != tuple(spec.image_size):
-      raise DatasetError(f"{path}: images are {spec.image_size[0]}x{spec.image_size[1]}, "
+      raise DatasetError(f"{path}: images are {spec.image_size[0]}x{spec.image_size[1]} (HxW), "
                          f"the config expects {image_size[0]}x{image_size[1]}")
   wanted = tuple(tasks) if tasks is not None else spec.tasks
   unknown = [t for t in wanted if t not in spec.tasks]

@@ -28,7 +28,9 @@ from envs.batched import CAMERAS
 from skillplug_jax.data.recording import Episode
 
 ACTION_DIM = envs.robot.ACTION_DIM
-FORMAT_VERSION = "1.0.0"
+# 2.0.0: episodes run until the completion predicate has held for 0.5 s (through
+# the release); 1.0.0 episodes were cut at the first step a looser check passed.
+FORMAT_VERSION = "2.0.0"
 BUILDER_NAME = "skillplug_demos"
 
 
@@ -39,7 +41,7 @@ class DatasetError(ValueError):
 class DatasetSpec(NamedTuple):
   """What a dataset holds: its tasks, and its image size (None: state only)."""
   tasks: tuple[str, ...]
-  image_size: tuple[int, int] | None  # (width, height) of both cameras
+  image_size: tuple[int, int] | None  # (height, width) of both cameras
 
 
 def features(spec: DatasetSpec) -> tfds.features.FeaturesDict:
@@ -48,7 +50,7 @@ def features(spec: DatasetSpec) -> tfds.features.FeaturesDict:
       "object_state": tfds.features.Tensor(shape=(envs.OBJECT_STATE_DIM,), dtype=np.float32),
   }
   if spec.image_size is not None:
-    w, h = spec.image_size
+    h, w = spec.image_size
     for cam in CAMERAS:
       obs[f"{cam}_rgb"] = tfds.features.Image(shape=(h, w, 3), dtype=np.uint8, encoding_format="png")
   return tfds.features.FeaturesDict({
@@ -109,7 +111,8 @@ class _Builder(tfds.core.GeneratorBasedBuilder):
 
   VERSION = tfds.core.Version(FORMAT_VERSION)
   _checksums_path = None  # nothing is downloaded (and the lookup needs importlib_resources)
-  RELEASE_NOTES = {FORMAT_VERSION: "Scripted-expert demonstrations, RLDS layout."}
+  RELEASE_NOTES = {"1.0.0": "Scripted-expert demonstrations, RLDS layout.",
+                   FORMAT_VERSION: "Episodes recorded until success is declared (completion held 0.5 s)."}
 
   def __init__(self, *, spec: DatasetSpec, records: Callable[[], Iterable[EpisodeRecord]],
                metadata: dict, **kwargs):
@@ -128,6 +131,16 @@ class _Builder(tfds.core.GeneratorBasedBuilder):
   def _generate_examples(self) -> Iterator:
     for rec in self._records():
       yield episode_id(rec.task, rec.reset_index), rlds_example(self._spec, rec)
+
+  # tfds prints "Downloading and preparing dataset ..." and "... downloaded and
+  # prepared to ..." with termcolor, whatever its logging or absl verbosity.
+  # These two hooks are all that prints them; nothing is downloaded here and the
+  # caller reports where the dataset went. Errors still raise as before.
+  def _log_download_bytes(self) -> None:
+    pass
+
+  def _log_download_done(self) -> None:
+    pass
 
 
 _Builder.name = BUILDER_NAME
@@ -176,9 +189,67 @@ def open_dataset(path: str | os.PathLike):
     raise DatasetError(f"{path} is not a complete dataset: dataset_info.json or features.json "
                        "is missing (an interrupted write?); delete it and generate it again")
   try:
-    return tfds.builder_from_directory(os.fspath(path))
+    builder = tfds.builder_from_directory(os.fspath(path))
   except Exception as e:  # noqa: BLE001  tfds raises many kinds; name the file
     raise DatasetError(f"{path}: cannot read the dataset ({type(e).__name__}: {e})") from e
+  if str(builder.info.version) != FORMAT_VERSION:
+    raise DatasetError(
+        f"{path} has dataset format {builder.info.version}, this code reads {FORMAT_VERSION} "
+        f"({_Builder.RELEASE_NOTES.get(FORMAT_VERSION)}). "
+        f"{regenerate_advice(path, builder.info.metadata)}")
+  check_data_files(builder)
+  return builder
+
+
+def check_data_files(builder) -> None:
+  """Open each ArrayRecord data file's footer (its record index, not its records).
+
+  A truncated, missing or overwritten file fails here, with its name, instead
+  of deep in the ArrayRecord library at the first read ("ArrayRecord file
+  should be at least 64KB big"). The record count must match dataset_info.json.
+  """
+  if builder.info.file_format != tfds.core.FileFormat.ARRAY_RECORD:
+    return
+  adapter = tfds.core.file_adapters.ArrayRecordFileAdapter
+  for split in builder.info.splits.values():
+    for file, expected in zip(split.filepaths, split.shard_lengths):
+      try:
+        found = adapter.num_examples(file)
+      except Exception as e:  # noqa: BLE001  the ArrayRecord reader raises RuntimeError with its reason
+        reason = f"the ArrayRecord reader cannot open it: {_reason(e)}"
+        raise DatasetError(damaged_file_message(builder, file, reason)) from e
+      if found != expected:
+        raise DatasetError(damaged_file_message(
+            builder, file, f"it holds {found} records, dataset_info.json says {expected}"))
+
+
+def damaged_file_message(builder, file, reason: str) -> str:
+  return (f"dataset file {file} is damaged ({reason}). "
+          f"{regenerate_advice(Path(builder.data_dir), builder.info.metadata)}")
+
+
+def regenerate_advice(path: Path, metadata) -> str:
+  """What to run to write the dataset again, from the generator config kept in its metadata."""
+  cfg = (metadata or {}).get("config")
+  if not isinstance(cfg, dict) or not {"taskset", "demos", "seed"} <= set(cfg):
+    return f"Delete {path} and write it again"
+  args = [f"--taskset {cfg['taskset']}", f"--demos {cfg['demos']}"]
+  size = cfg.get("image_size") or [64, 64]
+  if not cfg.get("images", True):
+    args.append("--state-only")
+  elif size[0] == size[1]:
+    args.append(f"--image-size {size[0]}")
+  args.append(f"--seed {cfg['seed']}")
+  if cfg.get("impl", "warp") != "warp":
+    args.append(f"--impl {cfg['impl']}")
+  args.append(f"--out {path.parent}")
+  return (f"Delete {path} and generate it again: `skillplug demos {' '.join(args)}` "
+          "(`skillplug pretrain` also regenerates a missing dataset)")
+
+
+def _reason(e: BaseException) -> str:
+  text = str(e).strip().splitlines()[0] if str(e).strip() else ""
+  return f"{type(e).__name__}: {text}" if text else type(e).__name__
 
 
 def spec_of(builder) -> DatasetSpec:
@@ -192,7 +263,7 @@ def spec_of(builder) -> DatasetSpec:
   image_size = None
   if f"{CAMERAS[0]}_rgb" in obs:
     h, w, _ = obs[f"{CAMERAS[0]}_rgb"].shape
-    image_size = (w, h)
+    image_size = (h, w)
   return DatasetSpec(tasks=tuple(meta["tasks"]), image_size=image_size)
 
 
@@ -217,13 +288,24 @@ def _check_fields(where, feats):
 
 
 def read_episodes(builder) -> Iterator[tuple[dict, dict]]:
-  """Yield (metadata, steps) per episode; steps are stacked numpy arrays."""
+  """Yield (metadata, steps) per episode; steps are stacked numpy arrays.
+
+  A record that cannot be read or decoded (damage inside a file whose footer
+  is intact) raises DatasetError naming the file that holds it.
+  """
+  split = builder.info.splits["train"]
+  ends = np.cumsum(split.shard_lengths)
   source = builder.as_data_source(split="train")
   for i in range(len(source)):
-    ex = source[i]
-    meta = {k: (v.decode() if isinstance(v, bytes) else v) for k, v in ex["episode_metadata"].items()}
-    steps = ex["steps"]
-    rows = [steps[t] for t in range(len(steps))]
+    try:
+      ex = source[i]
+      meta = {k: (v.decode() if isinstance(v, bytes) else v) for k, v in ex["episode_metadata"].items()}
+      steps = ex["steps"]
+      rows = [steps[t] for t in range(len(steps))]
+    except Exception as e:  # noqa: BLE001  ArrayRecord, protobuf and tfds decoding all raise their own kinds
+      file = split.filepaths[min(int(np.searchsorted(ends, i, side="right")), len(ends) - 1)]
+      reason = f"record {i} cannot be read: {_reason(e)}"
+      raise DatasetError(damaged_file_message(builder, file, reason)) from e
     yield meta, _stack(rows)
 
 

@@ -25,7 +25,7 @@ from skillplug_jax.evaluate.policy_controller import load_controller
 from skillplug_jax.evaluate.rollout import Controller, EpisodeResults, evaluate, local_devices_for
 
 EVAL_SEED = 1000
-VIDEO_SIZE = (128, 128)  # side-camera videos of state-based policies (image policies: their own size)
+VIDEO_SIZE = (128, 128)  # (H, W) of side-camera videos of state-based policies (image policies: their own size)
 
 
 def trial_keys(seed: int, trials: int) -> jax.Array:
@@ -33,7 +33,7 @@ def trial_keys(seed: int, trials: int) -> jax.Array:
 
 
 def evaluate_task(task: str, controller: Controller, trials: int, seed: int = EVAL_SEED, batch: int = 50,
-                  render: bool = False, image_size=(64, 64), videos: int = 0,
+                  render: bool = False, image_size=(64, 64), videos: int = 0,  # image_size: (H, W)
                   video_dir: str | Path | None = None) -> dict:
   """Success rate and query counts of one controller on one task.
 
@@ -98,17 +98,17 @@ def evaluate_runs(run_dirs: Sequence[str | Path], tasks: Sequence[str], trials: 
   video_dir/<run name>/.
   """
   results = []
+  # Every run is loaded first: a missing or damaged checkpoint fails before any evaluation.
+  loaded = [(run, *load_controller(run, query_every=query_every)) for run in run_dirs]
   bar = tqdm(total=len(run_dirs) * len(tasks), desc="eval", unit="task", file=sys.stderr,
              disable=not progress)
-  for run in run_dirs:
-    controller, cfg = load_controller(run, query_every=query_every)
+  for run, controller, cfg in loaded:
     label = groups.policy_label(cfg)
-    h, w = cfg.model.image_size
     for task in tasks:
       bar.set_postfix_str(f"{label} seed {cfg.seed} {task}")
       t0 = time.time()
-      r = evaluate_task(task, controller, trials, seed, batch, render=cfg.model.use_images, image_size=(w, h),
-                        videos=videos, video_dir=Path(video_dir) / Path(run).name)
+      r = evaluate_task(task, controller, trials, seed, batch, render=cfg.model.use_images,
+                        image_size=cfg.model.image_size, videos=videos, video_dir=Path(video_dir) / Path(run).name)
       r.update(run=str(run), policy=label, train_seed=cfg.seed, preset=cfg.preset, config=groups.training_key(cfg),
                wall_s=round(time.time() - t0, 1))
       results.append(r)

@@ -5,7 +5,10 @@
     <run>/checkpoints/<step>/  orbax: params, opt_state, step
 
 Orbax writes each checkpoint into a temporary directory and renames it when
-complete, so a run killed mid-save keeps its previous checkpoint.
+complete, so a run killed mid-save keeps its previous checkpoint. A checkpoint
+damaged afterwards (a truncated copy, a full disk, a bad sector) raises
+DamagedCheckpoint naming its directory; a resumed training run then falls back
+to the newest intact one (`restore_latest(..., fallback=True)`).
 """
 
 from __future__ import annotations
@@ -16,6 +19,7 @@ from pathlib import Path
 
 import jax
 import orbax.checkpoint as ocp
+import tensorstore as ts
 
 from skillplug_jax.atomic_json import write_json_atomic
 from skillplug_jax.train import config as train_config
@@ -29,26 +33,198 @@ RESUMABLE_CHANGES = {"workdir", "log_every", "ckpt_every", "keep_checkpoints", "
 
 
 class CheckpointError(ValueError):
-  """A checkpoint is missing or was made by an incompatible configuration."""
+  """A checkpoint is missing, damaged, or was made by an incompatible configuration."""
+
+
+class DamagedCheckpoint(CheckpointError):
+  """A checkpoint's files are truncated, missing or corrupt (not a model mismatch)."""
+
+  def __init__(self, path: Path, reason: str, advice: str = ""):
+    self.path, self.reason, self.advice = Path(path), reason, advice
+    super().__init__(f"checkpoint {path} is damaged (truncated, missing or corrupt files): {reason}"
+                     + (f". {advice}" if advice else ""))
+
+  def __reduce__(self):  # pickles (to another process) with its own arguments, not the message
+    return type(self), (self.path, self.reason, self.advice)
 
 
 def manager(run_dir: Path, keep: int = 2) -> ocp.CheckpointManager:
+  # The item handler lets `restore` read a checkpoint's tree metadata before its arrays.
   return ocp.CheckpointManager(
       (Path(run_dir) / "checkpoints").absolute(),
-      options=ocp.CheckpointManagerOptions(max_to_keep=keep, create=True))
+      options=ocp.CheckpointManagerOptions(max_to_keep=keep, create=True),
+      item_handlers=ocp.StandardCheckpointHandler())
 
 
 def save(mngr: ocp.CheckpointManager, step: int, state) -> None:
   mngr.save(step, args=ocp.args.StandardSave(state))
 
 
+def step_dir(mngr: ocp.CheckpointManager, step: int) -> Path:
+  return Path(mngr.directory) / str(step)
+
+
 def restore(mngr: ocp.CheckpointManager, step: int, like):
-  """Restore into the structure, shapes and shardings of `like`."""
+  """Restore into the structure, shapes and shardings of `like`.
+
+  Raises CheckpointError when the checkpoint holds another model, and
+  DamagedCheckpoint when its files cannot be read: the stored tree metadata
+  is compared with `like` first, so a failure after that is the files' fault.
+  """
+  path = step_dir(mngr, step)
   abstract = jax.tree.map(ocp.utils.to_shape_dtype_struct, like)
+  check_index(path)
+  try:
+    stored = mngr.item_metadata(step)
+  except Exception:  # noqa: BLE001  unreadable tree metadata: the restore below says what is wrong
+    stored = None
+  misfit = "" if stored is None else tree_misfit(abstract, stored)
+  if misfit:
+    raise CheckpointError(f"checkpoint {path} does not fit this model: {misfit}")
   try:
     return mngr.restore(step, args=ocp.args.StandardRestore(abstract))
-  except (ValueError, KeyError, TypeError) as e:
-    raise CheckpointError(f"checkpoint {step} in {mngr.directory} does not fit this model: {e}") from e
+  except Exception as e:  # noqa: BLE001  orbax wraps TensorStore read errors in a bare Exception
+    _raise_if_read_error(path, e)
+    raise
+
+
+def _raise_if_read_error(path: Path, e: Exception) -> None:
+  """DamagedCheckpoint if `e` comes from reading files (TensorStore's ValueErrors, JSON and
+  Unicode decoding, OSError); anything else (a bug, out of memory) is left to propagate."""
+  if isinstance(innermost(e), (ValueError, OSError)):
+    raise DamagedCheckpoint(path, short_reason(e)) from e
+
+
+def restore_latest(mngr: ocp.CheckpointManager, like, fallback: bool = False):
+  """(state, step, damaged) of the newest checkpoint that restores.
+
+  Without `fallback` a damaged newest checkpoint raises DamagedCheckpoint
+  (evaluating an older one silently would mislabel results); with it, older
+  ones are tried in turn and the damaged ones are returned for the caller to
+  report and set aside. No checkpoint at all, or none intact: CheckpointError.
+  """
+  steps = sorted(mngr.all_steps(), reverse=True)
+  if not steps:
+    raise CheckpointError(f"{mngr.directory} has no checkpoint")
+  damaged: list[DamagedCheckpoint] = []
+  for i, step in enumerate(steps):
+    try:
+      return restore(mngr, step, like), step, damaged
+    except DamagedCheckpoint as e:
+      if not fallback:
+        older = steps[i + 1] if i + 1 < len(steps) else None
+        advice = ("No older checkpoint is kept: delete it and train again" if older is None else
+                  f"Rerun the training command to set it aside and retrain from checkpoint {older}, "
+                  f"or delete {e.path} to use checkpoint {older} instead")
+        raise DamagedCheckpoint(e.path, e.reason, advice) from e
+      damaged.append(e)
+  raise CheckpointError(
+      f"no intact checkpoint in {mngr.directory}: "
+      + "; ".join(f"{e.path.name} is damaged ({e.reason})" for e in damaged)
+      + f". Delete {mngr.directory} to train from the start")
+
+
+def set_aside(mngr: ocp.CheckpointManager, damaged: DamagedCheckpoint, run_dir: Path) -> Path:
+  """Move a damaged checkpoint to <run>/damaged_checkpoints/<step>[.N] and return where.
+
+  Orbax would otherwise keep it as the latest step and skip saving that step
+  again; it is moved rather than deleted so that it can still be looked at.
+  """
+  src = damaged.path
+  base = Path(run_dir) / "damaged_checkpoints" / src.name
+  dst, n = base, 1
+  while dst.exists():
+    dst, n = base.with_name(f"{src.name}.{n}"), n + 1
+  if jax.process_index() == 0:
+    dst.parent.mkdir(parents=True, exist_ok=True)
+    src.rename(dst)
+  if jax.process_count() > 1:  # every process must see the move before orbax lists the steps again
+    from jax.experimental import multihost_utils
+    multihost_utils.sync_global_devices(f"skillplug_set_aside_{src.name}")
+  mngr.reload()
+  return dst
+
+
+def check_index(path: Path) -> None:
+  """Check a checkpoint's OCDBT index without reading its arrays.
+
+  Every B-tree node is decoded (checksummed), and every node and array value
+  it points to must lie inside an existing file: a truncated or missing file
+  is named here. Orbax reads all arrays at once; when several fail, the reads
+  still in flight after its first error print hundreds of "Event loop is
+  closed" tracebacks, which this check spares the common cases of.
+  """
+  for item in sorted(p for p in Path(path).iterdir() if p.is_dir()):
+    if not (item / "manifest.ocdbt").exists():
+      if any(item.glob("ocdbt.process_*")):
+        raise DamagedCheckpoint(path, f"{item / 'manifest.ocdbt'} is missing")
+      continue  # not an OCDBT item
+    if not (item / "_METADATA").exists():  # orbax's tree of the arrays' names
+      raise DamagedCheckpoint(path, f"{item / '_METADATA'} is missing")
+    try:
+      base = ts.KvStore.open({"driver": "file", "path": f"{item.absolute()}/"}).result()
+      versions = ts.ocdbt.dump(base).result().get("versions") or [{}]
+      pending = [versions[-1].get("root", {}).get("location")]
+      while pending:
+        loc = pending.pop()
+        if not isinstance(loc, str):
+          continue
+        _check_reference(path, item, loc)
+        for entry in ts.ocdbt.dump(base, loc).result().get("entries", []):
+          if "location" in entry:  # a child node
+            pending.append(entry["location"])
+          elif "indirect_value" in entry:
+            _check_reference(path, item, entry["indirect_value"])
+    except DamagedCheckpoint:
+      raise
+    except (ValueError, OSError) as e:  # TensorStore: a node that cannot be read or decoded
+      raise DamagedCheckpoint(path, short_reason(e)) from e
+
+
+def _check_reference(path: Path, item: Path, ref: str) -> None:
+  """'<kind>:<base>:<file>:<offset>:<length>' (OCDBT's dump) must lie inside <item>/<base><file>."""
+  parts = ref.split(":")
+  if len(parts) < 5 or not (parts[-2].isdigit() and parts[-1].isdigit()):
+    return  # a form this check does not know: leave it to the restore
+  file = item / parts[1] / ":".join(parts[2:-2])
+  if not file.is_file():
+    raise DamagedCheckpoint(path, f"{file} is missing")
+  size, needed = file.stat().st_size, int(parts[-2]) + int(parts[-1])
+  if size < needed:
+    raise DamagedCheckpoint(path, f"{file} is truncated ({size} bytes, its index needs {needed})")
+
+
+def tree_misfit(abstract, stored) -> str:
+  """The first difference between a target tree and a checkpoint's metadata ('' if none)."""
+  want, have = ocp.tree.to_flat_dict(abstract), ocp.tree.to_flat_dict(stored)
+  name = lambda key: ".".join(map(str, key))  # noqa: E731
+  missing, extra = sorted(set(want) - set(have)), sorted(set(have) - set(want))
+  if missing:
+    return f"it lacks {len(missing)} of the model's arrays (the first is {name(missing[0])})"
+  if extra:
+    return f"it holds {len(extra)} arrays the model does not have (the first is {name(extra[0])})"
+  for k in sorted(want):
+    a, b = tuple(want[k].shape), tuple(getattr(have[k], "shape", None) or ())
+    if a != b:
+      return f"{name(k)} has shape {b} in the checkpoint, the model expects {a}"
+  return ""
+
+
+def innermost(e: BaseException) -> BaseException:
+  while e.__cause__ is not None:
+    e = e.__cause__
+  return e
+
+
+def short_reason(e: BaseException, limit: int = 300) -> str:
+  """The root cause in one line, without TensorStore's spec dump."""
+  root = innermost(e)
+  lines = str(root).strip().splitlines()
+  text = lines[0] if lines else ""
+  for tail in (" [tensorstore_spec=", " [source locations="):
+    text = text.split(tail)[0]
+  text = f"{type(root).__name__}: {text}" if text else type(root).__name__
+  return text if len(text) <= limit else text[:limit - 3] + "..."
 
 
 def write_run_files(run_dir: Path, cfg, stats: dict) -> None:

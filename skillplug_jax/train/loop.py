@@ -5,7 +5,9 @@ is split over a 1-D 'data' mesh, and XLA inserts the gradient all-reduce
 (several hosts: call `jax.distributed.initialize()` first; the mesh then
 spans every process's devices). A step's randomness is fold_in(seed, step)
 and the loader's batch is a function of (seed, step), so a run resumed from
-its last checkpoint continues exactly as if it had not been stopped.
+its last checkpoint continues exactly as if it had not been stopped. A damaged
+last checkpoint is set aside, with a warning, and the run resumes from the
+newest intact one.
 """
 
 from __future__ import annotations
@@ -46,9 +48,8 @@ class TrainingError(RuntimeError):
 
 
 def dataset_config(cfg: TrainConfig) -> demo_data.DemoConfig:
-  h, w = cfg.model.image_size
   return demo_data.DemoConfig(taskset=cfg.data_taskset or cfg.taskset, demos=cfg.demos,
-                              images=cfg.model.use_images, image_size=(w, h), seed=cfg.data_seed)
+                              images=cfg.model.use_images, image_size=cfg.model.image_size, seed=cfg.data_seed)
 
 
 def load_data(cfg: TrainConfig, generate: bool = True, progress: bool = True) -> data_loader.Demonstrations:
@@ -57,9 +58,9 @@ def load_data(cfg: TrainConfig, generate: bool = True, progress: bool = True) ->
   path = demo_data.dataset_path(dcfg, cfg.data_dir)
   if not path.exists() and generate:
     demo_data.make_demos(dcfg, cfg.data_dir, progress=progress)
-  h, w = cfg.model.image_size
   tasks = tuple(n for part in cfg.taskset.split(",") for n in envs.taskset(part))
-  return data_loader.load_demonstrations(path, tasks=tasks, images=cfg.model.use_images, image_size=(w, h))
+  return data_loader.load_demonstrations(path, tasks=tasks, images=cfg.model.use_images,
+                                         image_size=cfg.model.image_size)
 
 
 def optimizer(cfg: TrainConfig, params) -> optax.GradientTransformation:
@@ -117,15 +118,14 @@ def load_params(run_dir: str | Path, like=None):
   """Parameters of a run's latest checkpoint (shapes checked against `like` if given)."""
   run_dir = Path(run_dir)
   cfg = checkpoint.read_config(run_dir)
-  mngr = checkpoint.manager(run_dir)
-  step = mngr.latest_step()
-  if step is None:
-    raise checkpoint.CheckpointError(f"{run_dir} has no checkpoint")
   params = init_params(cfg, jax.random.PRNGKey(0)) if like is None else like
   tx = optimizer(cfg, params)
   target = TrainState(jnp.zeros((), jnp.int32), params, tx.init(params))
-  state = checkpoint.restore(mngr, step, target)
-  mngr.close()
+  mngr = checkpoint.manager(run_dir)
+  try:  # no fallback: a damaged latest checkpoint is an error that names it, not an older result
+    state, _, _ = checkpoint.restore_latest(mngr, target)
+  finally:
+    mngr.close()
   return cfg, state.params, int(state.step)
 
 
@@ -160,11 +160,13 @@ def train(cfg: TrainConfig, progress: bool = True, stop_after: int | None = None
   state = jax.device_put(state, replicated)
 
   mngr = checkpoint.manager(run_dir, cfg.keep_checkpoints)
-  start = mngr.latest_step()
-  if start is not None:
+  start = 0
+  if mngr.latest_step() is not None:
     checkpoint.check_resumable(run_dir, cfg)
-    state = checkpoint.restore(mngr, start, state)
-  start = start or 0
+    state, start, damaged = checkpoint.restore_latest(mngr, state, fallback=True)
+    for bad in damaged:  # set aside, or orbax would skip saving their steps again
+      moved = checkpoint.set_aside(mngr, bad, run_dir)
+      print(f"warning: {bad}; moved it to {moved} and resuming from checkpoint {start}", file=sys.stderr)
   checkpoint.write_run_files(run_dir, cfg, data.stats)
 
   step_fn = jax.jit(make_train_step(cfg, tx, step_key), donate_argnums=0,

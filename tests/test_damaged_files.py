@@ -1,0 +1,182 @@
+"""Damaged files get named errors: dataset shards, checkpoints (eval fails, a resumed run falls back)."""
+
+import re
+import shutil
+from pathlib import Path
+
+import jax
+import numpy as np
+import pytest
+
+from skillplug_jax import cli
+from skillplug_jax.data import loader, rlds
+from skillplug_jax.data.rlds import DatasetError
+from skillplug_jax.evaluate.policy_controller import load_controller
+from skillplug_jax.train import checkpoint, loop
+from skillplug_jax.train.scalars import read_metrics
+from synthetic import synthetic_episode, write_synthetic
+from test_train import TASKS, tiny
+
+
+def shard_of(dataset: Path) -> Path:
+  (shard,) = dataset.glob("*.array_record-*")
+  return shard
+
+
+def truncate(path: Path, keep: float = 0.5) -> None:
+  data = path.read_bytes()
+  path.write_bytes(data[:int(len(data) * keep)])
+
+
+# ---- datasets -----------------------------------------------------------------
+
+@pytest.fixture(scope="module")
+def dataset(tmp_path_factory):
+  rng = np.random.default_rng(0)
+  records = [rlds.EpisodeRecord("jujube_pick", 0, i, synthetic_episode(rng, 12)) for i in range(4)]
+  return write_synthetic(tmp_path_factory.mktemp("ds"), "ds", rlds.DatasetSpec(("jujube_pick",), None), records)
+
+
+def test_writing_a_dataset_prints_no_download_lines(tmp_path, capfd):
+  rng = np.random.default_rng(1)
+  records = [rlds.EpisodeRecord("jujube_pick", 0, 0, synthetic_episode(rng, 5))]
+  path = write_synthetic(tmp_path, "quiet", rlds.DatasetSpec(("jujube_pick",), None), records)
+  out, err = capfd.readouterr()
+  assert "Downloading" not in out + err and "downloaded and prepared" not in out + err, out + err
+  assert loader.load_demonstrations(path).num_episodes == 1
+
+
+@pytest.mark.parametrize("damage", ["truncated", "empty", "missing"])
+def test_unreadable_dataset_shard_is_named_when_opened(dataset, tmp_path, damage):
+  copy = tmp_path / "ds"
+  shutil.copytree(dataset, copy)
+  shard = shard_of(copy)
+  if damage == "truncated":
+    truncate(shard, 0.01)  # as a copy cut short: the library said 'ArrayRecord file should be at least 64KB big'
+  elif damage == "empty":
+    shard.write_bytes(b"")
+  else:
+    shard.unlink()
+  with pytest.raises(DatasetError, match=f"dataset file {re.escape(str(shard))} is damaged .*"
+                                         f"Delete {re.escape(str(copy))} and "):
+    rlds.open_dataset(copy)  # at open, before any record is read
+  with pytest.raises(DatasetError, match=re.escape(shard.name)):
+    loader.load_demonstrations(copy)
+
+
+def test_corrupt_record_is_named_when_read(dataset, tmp_path):
+  copy = tmp_path / "ds"
+  shutil.copytree(dataset, copy)
+  shard = shard_of(copy)
+  data = bytearray(shard.read_bytes())
+  data[100:2000:7] = bytes(b ^ 0xFF for b in data[100:2000:7])  # inside the records; the footer is intact
+  shard.write_bytes(bytes(data))
+  rlds.open_dataset(copy)
+  with pytest.raises(DatasetError, match=f"dataset file {re.escape(str(shard))} is damaged "
+                                         "\\(record 0 cannot be read: "):
+    loader.load_demonstrations(copy)
+
+
+def test_regenerate_advice_repeats_the_generating_command(tmp_path):
+  cfg = dict(taskset="jujube_pick", demos=2, images=False, image_size=[64, 64], seed=3, batch=2, impl="warp")
+  advice = rlds.regenerate_advice(tmp_path / "name", {"config": cfg})
+  assert f"Delete {tmp_path / 'name'} and generate it again: `skillplug demos --taskset jujube_pick --demos 2 " \
+         f"--state-only --seed 3 --out {tmp_path}`" in advice
+  cfg.update(images=True, image_size=[32, 32])
+  assert "--image-size 32 --seed 3" in rlds.regenerate_advice(tmp_path / "name", {"config": cfg})
+  assert rlds.regenerate_advice(tmp_path / "x", {"test": True}) == f"Delete {tmp_path / 'x'} and write it again"
+
+
+# ---- checkpoints --------------------------------------------------------------
+
+@pytest.fixture(scope="module")
+def data_dir(tmp_path_factory):
+  root = tmp_path_factory.mktemp("datasets")
+  rng = np.random.default_rng(0)
+  records = [rlds.EpisodeRecord(task, 0, i, synthetic_episode(rng, int(rng.integers(8, 40))))
+             for task in TASKS for i in range(3)]
+  write_synthetic(root, "jujube_pick+kiwi_place_3demos_state_seed0", rlds.DatasetSpec(TASKS, None), records)
+  return root
+
+
+@pytest.fixture(scope="module")
+def finished_run(data_dir, tmp_path_factory):
+  """A tiny run trained to the end: checkpoints 3 and 6, and its final parameters."""
+  run = loop.train(tiny(data_dir, tmp_path_factory.mktemp("runs") / "run"), progress=False)
+  assert checkpoint.manager(run).all_steps() == [3, 6]
+  _, params, _ = loop.load_params(run)
+  return run, jax.tree.map(np.asarray, params)
+
+
+def copy_run(run: Path, dst: Path) -> Path:
+  shutil.copytree(run, dst)
+  return dst
+
+
+def largest_file(step_dir: Path) -> Path:
+  return max((p for p in step_dir.rglob("*") if p.is_file()), key=lambda p: p.stat().st_size)
+
+
+def test_damaged_checkpoint_fails_evaluation_naming_it(finished_run, tmp_path, capsys):
+  run = copy_run(finished_run[0], tmp_path / "run")
+  step6 = run / "checkpoints" / "6"
+  bad = largest_file(step6)
+  truncate(bad)
+  with pytest.raises(checkpoint.DamagedCheckpoint,
+                     match=f"checkpoint {re.escape(str(step6))} is damaged .*{bad.name} is truncated"
+                           ".*from checkpoint 3"):
+    load_controller(run)
+  capsys.readouterr()
+  rc = cli.main(["eval", "--runs", str(run), "--taskset", "jujube_pick", "--trials", "1", "--batch", "1"])
+  err = capsys.readouterr().err
+  assert rc == 2
+  assert f"skillplug: error: checkpoint {step6} is damaged" in err and "Traceback" not in err, err
+  assert (step6 / "default").is_dir()  # evaluation only reports; it moves nothing
+
+
+def test_corrupt_checkpoint_index_is_named(finished_run, tmp_path):
+  run = copy_run(finished_run[0], tmp_path / "run")
+  manifest = run / "checkpoints" / "6" / "default" / "manifest.ocdbt"
+  data = bytearray(manifest.read_bytes())
+  data[len(data) // 2] ^= 0xFF
+  manifest.write_bytes(bytes(data))
+  with pytest.raises(checkpoint.DamagedCheckpoint, match="manifest.ocdbt.*checksum"):
+    loop.load_params(run)
+
+
+def test_checkpoint_of_another_model_is_not_called_damaged(finished_run, data_dir):
+  wider = tiny(data_dir, "unused", "skillplug", "model.hidden=64")
+  like = loop.init_params(wider, jax.random.PRNGKey(0))
+  with pytest.raises(checkpoint.CheckpointError, match="does not fit this model: .* has shape") as info:
+    loop.load_params(finished_run[0], like=like)
+  assert not isinstance(info.value, checkpoint.DamagedCheckpoint)
+
+
+def test_resume_falls_back_to_the_previous_intact_checkpoint(finished_run, data_dir, tmp_path, capsys):
+  run, final = finished_run
+  run = copy_run(run, tmp_path / "run")
+  truncate(largest_file(run / "checkpoints" / "6"))
+  capsys.readouterr()
+  loop.train(tiny(data_dir, run), progress=False)  # the same command again: resumes
+  err = capsys.readouterr().err
+  assert f"warning: checkpoint {run / 'checkpoints' / '6'} is damaged" in err
+  assert f"moved it to {run / 'damaged_checkpoints' / '6'} and resuming from checkpoint 3" in err
+  assert (run / "damaged_checkpoints" / "6" / "default").is_dir()
+  assert checkpoint.manager(run).all_steps() == [3, 6]
+  # steps 3..6 trained again give the parameters the undamaged run ended with
+  _, params, step = loop.load_params(run)
+  assert step == 6
+  for x, y in zip(jax.tree.leaves(final), jax.tree.leaves(jax.tree.map(np.asarray, params))):
+    np.testing.assert_array_equal(y, x)  # bit-identical, as after a kill
+  assert [r["step"] for r in read_metrics(run)] == [2, 3, 4, 6]  # each step logged once
+
+
+def test_no_intact_checkpoint_left(finished_run, data_dir, tmp_path):
+  run = copy_run(finished_run[0], tmp_path / "run")
+  for step in (3, 6):
+    truncate(largest_file(run / "checkpoints" / str(step)))
+  with pytest.raises(checkpoint.CheckpointError,
+                     match=f"no intact checkpoint in {re.escape(str(run / 'checkpoints'))}: 6 is damaged "
+                           f".*; 3 is damaged .*Delete {re.escape(str(run / 'checkpoints'))} to train"):
+    loop.train(tiny(data_dir, run), progress=False)
+  assert checkpoint.manager(run).all_steps() == [3, 6]  # nothing moved when nothing can be resumed
