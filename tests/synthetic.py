@@ -31,3 +31,10 @@ def write_synthetic(root: Path, name: str, spec: rlds.DatasetSpec, records: list
   final = root / name
   os.replace(version_dir, final)
   return final
+
+
+def write_two_task_demos(root: Path, rng, tasks=("jujube_pick", "kiwi_place")) -> None:
+  """3 random state-only episodes per task, where a `demos=3` training run on `tasks` looks."""
+  records = [rlds.EpisodeRecord(task, 0, i, synthetic_episode(rng, int(rng.integers(8, 40))))
+             for task in tasks for i in range(3)]
+  write_synthetic(root, f"{'+'.join(tasks)}_3demos_state_seed0", rlds.DatasetSpec(tuple(tasks), None), records)

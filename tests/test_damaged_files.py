@@ -14,7 +14,7 @@ from skillplug_jax.data.rlds import DatasetError
 from skillplug_jax.evaluate.policy_controller import load_controller
 from skillplug_jax.train import checkpoint, loop
 from skillplug_jax.train.scalars import read_metrics
-from synthetic import synthetic_episode, write_synthetic
+from synthetic import synthetic_episode, write_synthetic, write_two_task_demos
 from test_train import TASKS, tiny
 
 
@@ -92,10 +92,7 @@ def test_regenerate_advice_repeats_the_generating_command(tmp_path):
 @pytest.fixture(scope="module")
 def data_dir(tmp_path_factory):
   root = tmp_path_factory.mktemp("datasets")
-  rng = np.random.default_rng(0)
-  records = [rlds.EpisodeRecord(task, 0, i, synthetic_episode(rng, int(rng.integers(8, 40))))
-             for task in TASKS for i in range(3)]
-  write_synthetic(root, "jujube_pick+kiwi_place_3demos_state_seed0", rlds.DatasetSpec(TASKS, None), records)
+  write_two_task_demos(root, np.random.default_rng(0), TASKS)
   return root
 
 

@@ -1,7 +1,6 @@
 """The training loop: exact resume, 1 vs 4 devices, frozen groups, NaN and config errors."""
 
 import os
-import sys
 import textwrap
 
 import jax
@@ -14,7 +13,7 @@ from skillplug_jax.data import normalization, rlds
 from skillplug_jax.train import checkpoint, config, loop
 from skillplug_jax.train.scalars import read_metrics
 from host_devices import run_on_host_devices
-from synthetic import synthetic_episode, write_synthetic
+from synthetic import synthetic_episode, write_synthetic, write_two_task_demos
 
 TASKS = ("jujube_pick", "kiwi_place")
 TARGET = "block_place"  # an unseen task for the few-shot runs
@@ -24,9 +23,7 @@ TARGET = "block_place"  # an unseen task for the few-shot runs
 def data_dir(tmp_path_factory):
   root = tmp_path_factory.mktemp("datasets")
   rng = np.random.default_rng(0)
-  records = [rlds.EpisodeRecord(task, 0, i, synthetic_episode(rng, int(rng.integers(8, 40))))
-             for task in TASKS for i in range(3)]
-  write_synthetic(root, "jujube_pick+kiwi_place_3demos_state_seed0", rlds.DatasetSpec(TASKS, None), records)
+  write_two_task_demos(root, rng, TASKS)
   # the unseen task's demos: other actions and joint positions, so other statistics
   target = []
   for i in range(3):

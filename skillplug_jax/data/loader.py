@@ -146,11 +146,6 @@ class ChunkLoader:
     self._epoch_cache: tuple[int, np.ndarray, np.ndarray] | None = None
     self.wait_s = 0.0  # time the consumer spent blocked on the next batch
 
-  @property
-  def steps_per_epoch(self) -> float:
-    """Training steps per ACT epoch (one draw per episode)."""
-    return self.demos.num_episodes / self.batch_size
-
   def _epoch(self, e: int):
     if self._epoch_cache is None or self._epoch_cache[0] != e:
       rng = np.random.default_rng([self.seed, e])

@@ -61,6 +61,3 @@ def read_stats(dataset_dir: str | Path) -> dict | None:
 def normalize(x, stats: dict, key: str):
   return (x - np.asarray(stats[key]["mean"], np.float32)) / np.asarray(stats[key]["std"], np.float32)
 
-
-def unnormalize(x, stats: dict, key: str):
-  return x * np.asarray(stats[key]["std"], np.float32) + np.asarray(stats[key]["mean"], np.float32)

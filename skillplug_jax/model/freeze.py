@@ -13,8 +13,6 @@ import jax
 import optax
 
 GROUPS = ("encoder", "cvae", "skills", "interactor", "router", "posterior", "action_head")
-ACT_GROUPS = frozenset({"encoder", "cvae", "action_head"})
-SKILLPLUG_GROUPS = frozenset(GROUPS)
 
 # The paper's few-shot protocol: SkillPlug retrains router and action head,
 # vanilla ACT the action head only.
