@@ -47,8 +47,8 @@ class BatchedEnv:
           raise ValueError("a rendering batch can be split over GPUs only (Warp has one CPU device, "
                            "so CPU shards would share one render context)")
         warp_devices = [f"cuda:{d.local_hardware_id}" for d in devices]
-      self._ctx = mjx.create_render_context(
-          m, nworld=num_envs, devices=warp_devices, cam_res=(w, h), use_textures=False, use_shadows=False,  # Warp: (W, H)
+      self._ctx = mjx.create_render_context(  # Warp's cam_res is (W, H)
+          m, nworld=num_envs, devices=warp_devices, cam_res=(w, h), use_textures=False, use_shadows=False,
           render_rgb=[True] * m.ncam, render_depth=[False] * m.ncam)
 
   @property

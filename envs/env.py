@@ -21,6 +21,7 @@ from typing import Sequence
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 from brax.envs.base import Env, State
 from mujoco import mjx
 from mujoco.mjx.third_party import mujoco_warp as mjw
@@ -35,6 +36,7 @@ GRIPPER_SUBTREE = "link6"
 # less exact). They are counted per episode instead of printed per step.
 SOLVER_LIMIT_BITS = {"solver_iterations": int(mjw.OverflowType.ITERATIONS),
                      "linesearch_iterations": int(mjw.OverflowType.LS_ITERATIONS)}
+
 
 @dataclasses.dataclass(frozen=True)
 class EnvConfig:
@@ -233,7 +235,6 @@ def _overflow(data):
 
 def solver_limit_counts(overflow) -> dict:
   """Episodes (of a batch's overflow bitmasks) whose solver or line search hit its limit."""
-  import numpy as np
   bits = np.asarray(overflow).astype(np.int64)
   return {name: int(((bits & bit) != 0).sum()) for name, bit in SOLVER_LIMIT_BITS.items()}
 
