@@ -108,6 +108,7 @@ def cmd_eval(args) -> int:
   md = tables.report(out, f"{args.trials} paired trials per task (seed {args.seed})")
   print("\n" + md + "\n")
   print(rows_legend(out["rows"]))
+  print(protocol.solver_limit_summary(out["results"]))
   if args.out:
     _write_tables(Path(args.out), out, md)
   if args.videos:
@@ -142,6 +143,8 @@ def cmd_fewshot(args) -> int:
   md = tables.report(out, f"few-shot, {args.demos} demos per task, {args.trials} paired trials per task")
   print("\n" + md + "\n")
   print(rows_legend(out["rows"]))
+  from skillplug_jax.evaluate import protocol
+  print(protocol.solver_limit_summary(out["results"]))
   if args.out:
     _write_tables(Path(args.out), out, md)
   return 0

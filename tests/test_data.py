@@ -288,6 +288,7 @@ def test_demos_generate_resume_and_reuse(tmp_path, monkeypatch):
   assert d.num_episodes == 2 and d.image_size is None
   meta = tfds.builder_from_directory(str(path)).info.metadata
   assert meta["per_task"]["jujube_pick"]["kept"] == 2
+  assert 0 <= meta["per_task"]["jujube_pick"]["solver_iterations_limit_episodes"] <= 2  # counted, not printed
   assert not any(p.name.startswith(".") for p in tmp_path.iterdir())  # staging cleaned up
   # each kept episode is a success whose last step is terminal, and its
   # first observation is the seeded reset state

@@ -42,6 +42,7 @@ def test_expert_through_engine_reproduces_expert(benv):
   # one query per step until success is declared, after the predicate held for SUCCESS_HOLD_STEPS
   np.testing.assert_array_equal(got.queries, ref.first_success_step + SUCCESS_HOLD_STEPS - 1)
   assert not got.nan.any() and got.routing is None
+  np.testing.assert_array_equal(got.overflow, ref.overflow)  # the same physics, the same solver-limit bits
 
 
 class PoisonedEnv(BatchedEnv):
@@ -257,7 +258,9 @@ def _run_results(policy: str, seed: int, outcomes: dict, *settings) -> list[dict
                               ["taskset=quickstart3", f"seed={seed}", f"workdir=runs/{policy}{seed}", *settings])
   return [dict(task=t, config=groups.training_key(cfg), train_seed=seed, policy=groups.policy_label(cfg),
                run=str(cfg.run_dir), success_rate=float(np.mean(succ)), trial_success=[bool(x) for x in succ],
-               trial_queries=list(q)) for t, (succ, q) in outcomes.items()]
+               trial_queries=list(q), trials=len(succ),
+               solver_limit_episodes={"solver_iterations": 1, "linesearch_iterations": 0})
+          for t, (succ, q) in outcomes.items()]
 
 
 def _three_configurations() -> list[dict]:
@@ -333,6 +336,9 @@ def test_eval_cli_and_quickstart_print_and_write_every_table(tmp_path, monkeypat
                 "over the paired trials", "Trials every run solved"):
     assert printed.count(title) == 1, title
   assert "ACT+SkillPlug (num_skills=2): quick preset, seeds [0]" in printed
+  n, episodes = len(results), sum(r["trials"] for r in results)
+  assert (f"solver stopped at its iteration limit in {n} and its line search in 0 of {episodes} episodes"
+          in printed)
   saved = json.loads((tmp_path / "ev.json").read_text())
   assert saved["rows"]["ACT+SkillPlug (num_skills=4)"]["seeds"] == [0, 1, 2]
   assert (tmp_path / "ev.md").read_text().count("| Method |") == 3

@@ -122,6 +122,7 @@ def _generate_task(cfg: DemoConfig, task: str, bar) -> tuple[list[Episode], dict
   benv = envs.make(task, num_envs=min(cfg.batch, cfg.demos), render=cfg.images,
                    image_size=cfg.image_size, impl=cfg.impl)
   kept, indices, attempts, nans, t0 = [], [], 0, 0, time.time()
+  overflow = []
   max_attempts = 3 * cfg.demos + 2 * benv.num_envs
   while len(kept) < cfg.demos:
     if attempts >= max_attempts:
@@ -131,6 +132,7 @@ def _generate_task(cfg: DemoConfig, task: str, bar) -> tuple[list[Episode], dict
     keys = rollout.reset_keys(cfg.seed, benv.num_envs, offset=attempts)
     for b, ep in enumerate(record_expert(benv, keys)):
       nans += ep.nan
+      overflow.append(ep.overflow)
       if ep.success and len(kept) < cfg.demos:
         kept.append(ep)
         indices.append(attempts + b)
@@ -139,6 +141,7 @@ def _generate_task(cfg: DemoConfig, task: str, bar) -> tuple[list[Episode], dict
   wall = time.time() - t0
   info = dict(reset_index=np.asarray(indices, np.int64), attempts=attempts, kept=len(kept),
               expert_success_rate=len(kept) / attempts if attempts else 0.0, nan_episodes=nans,
+              **{f"{k}_limit_episodes": v for k, v in envs.env.solver_limit_counts(overflow).items()},
               wall_s=round(wall, 2), mean_length=float(np.mean([len(e.action) for e in kept])))
   return kept, info
 

@@ -30,6 +30,7 @@ class Episode(NamedTuple):
   action: np.ndarray  # [T, 7]
   success: bool
   nan: bool
+  overflow: int = 0  # the physics' overflow bits (envs.env.solver_limit_counts)
 
 
 @functools.lru_cache(maxsize=None)
@@ -75,11 +76,12 @@ def record_expert(benv: BatchedEnv, keys: jax.Array) -> list[Episode]:
   alive = np.concatenate([c[2] for c in chunks], axis=0)[:limit]
   first = np.asarray(state.info["first_success_step"])
   nan = np.asarray(state.metrics["nan"]) > 0
+  overflow = np.asarray(state.metrics["overflow"])
   episodes = []
   for b in range(benv.num_envs):
     length = int(alive[:, b].sum())  # alive is a prefix: done never clears
     episodes.append(Episode(
         observation={k: v[:length, b] for k, v in obs.items()},
         action=action[:length, b].astype(np.float32),
-        success=bool(first[b] >= 0), nan=bool(nan[b])))
+        success=bool(first[b] >= 0), nan=bool(nan[b]), overflow=int(overflow[b])))
   return episodes

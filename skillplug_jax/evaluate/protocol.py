@@ -20,6 +20,7 @@ from tqdm import tqdm
 
 import envs
 from envs import rollout as env_rollout
+from envs.env import SOLVER_LIMIT_BITS, solver_limit_counts
 from skillplug_jax.evaluate import groups, tables
 from skillplug_jax.evaluate.policy_controller import load_controller
 from skillplug_jax.evaluate.rollout import Controller, EpisodeResults, evaluate, local_devices_for
@@ -66,10 +67,11 @@ def evaluate_task(task: str, controller: Controller, trials: int, seed: int = EV
       parts.append(evaluate(benv, controller, k, devices))
   take = lambda f: np.concatenate([getattr(p, f) for p in parts])[:trials]  # noqa: E731
   success, nan, queries = take("success"), take("nan"), take("queries")
+  overflow = take("overflow") if all(p.overflow is not None for p in parts) else np.zeros(trials, np.int32)
   routing = [p.routing for p in parts if p.routing is not None]
   return dict(task=task, abbr=benv.env.abbr, trials=trials, seed=seed, devices=ndev,
               success_rate=float(success.mean()), successes=int(success.sum()),
-              nan_episodes=int(nan.sum()),
+              nan_episodes=int(nan.sum()), solver_limit_episodes=solver_limit_counts(overflow),
               mean_queries_success=float(queries[success].mean()) if success.any() else None,
               mean_steps_success=float(take("first_success_step")[success].mean()) if success.any() else None,
               mean_routing=(np.nanmean(np.concatenate([r.reshape(-1, r.shape[-1]) for r in routing]), axis=0)
@@ -116,3 +118,12 @@ def evaluate_runs(run_dirs: Sequence[str | Path], tasks: Sequence[str], trials: 
   bar.close()
   return dict(trials=trials, seed=seed, query_every=query_every, device=str(jax.devices()[0]),
               results=results, **tables.summarise(results, tasks))
+
+
+def solver_limit_summary(results: Sequence[dict]) -> str:
+  """One line for a whole run: how many episodes hit MuJoCo Warp's solver or line-search limit."""
+  total = sum(r["trials"] for r in results)
+  hit = {k: sum(r["solver_limit_episodes"][k] for r in results) for k in SOLVER_LIMIT_BITS}
+  return (f"MuJoCo Warp's solver stopped at its iteration limit in {hit['solver_iterations']} and its "
+          f"line search in {hit['linesearch_iterations']} of {total} episodes (per task in the JSON; "
+          "the per-step warning is silenced)")
