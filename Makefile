@@ -7,9 +7,11 @@ PY := $(VENV)/bin/python
 TASKSET ?= discoverse7
 EPISODES ?= 100
 DEMOS ?= 300
-DATASET ?= $(OUT)/datasets/$(TASKSET)_10demos_img64x64_seed0
+DATASET ?= $(OUT)/datasets/$(TASKSET)_10demos_img64x64_seed0_mujoco
 IMAGES ?= 1
 OUT ?= results
+# Physics: mujoco (MuJoCo's C engine, CPUs), mjx-warp (GPUs), auto (mjx-warp when JAX sees a GPU).
+BACKEND ?= auto
 
 export MUJOCO_GL ?= egl
 
@@ -23,8 +25,10 @@ $(VENV)/.installed: pyproject.toml
 	$(PY) -m pip install -q -e ".[dev]"
 	touch $@
 
+# Two pytest-xdist workers, a test file at a time on each: a file's module
+# fixtures (datasets, trained runs) and compiled programs are made once.
 test: install
-	$(PY) -m pytest -q tests
+	$(PY) -m pytest -q -n 2 --dist loadfile tests
 
 # The main job on a CPU: demos, quick pretraining of ACT and ACT+SkillPlug,
 # closed-loop evaluation, few-shot adaptation, success tables (experiments/quickstart.py).
@@ -33,40 +37,41 @@ quickstart: install
 
 experts: install
 	mkdir -p $(OUT)
-	$(VENV)/bin/skillplug experts --taskset $(TASKSET) --episodes $(EPISODES) --json $(OUT)/experts_$(TASKSET).json
+	$(VENV)/bin/skillplug experts --taskset $(TASKSET) --episodes $(EPISODES) --backend $(BACKEND) --json $(OUT)/experts_$(TASKSET).json
 
 # Expert demonstrations as an RLDS dataset under $(OUT)/datasets (IMAGES=0: state only).
 demos: install
-	$(VENV)/bin/skillplug demos --taskset $(TASKSET) --demos $(DEMOS) --out $(OUT)/datasets $(if $(filter 0,$(IMAGES)),--state-only,)
+	$(VENV)/bin/skillplug demos --taskset $(TASKSET) --demos $(DEMOS) --backend $(BACKEND) --out $(OUT)/datasets $(if $(filter 0,$(IMAGES)),--state-only,)
 
 # Multi-task pretraining: generates the demos when missing, trains, prints the checkpoint path.
 POLICY ?= skillplug
 PRESET ?= quick
 SEED ?= 0
 pretrain: install
-	$(VENV)/bin/skillplug pretrain --taskset $(TASKSET) --policy $(POLICY) --preset $(PRESET) --seed $(SEED)
+	$(VENV)/bin/skillplug pretrain --taskset $(TASKSET) --policy $(POLICY) --preset $(PRESET) --seed $(SEED) --backend $(BACKEND)
 
 # Few-shot: fine-tune FROM (a pretrain run directory) on each unseen task, then evaluate it.
 TRIALS ?= 50
 fewshot: TASKSET = discoverse_fewshot4
 fewshot: DEMOS = 10
 fewshot: install
-	$(VENV)/bin/skillplug fewshot --from $(FROM) --taskset $(TASKSET) --demos $(DEMOS) --trials $(TRIALS) --out $(OUT)/fewshot_$(notdir $(FROM))
+	$(VENV)/bin/skillplug fewshot --from $(FROM) --taskset $(TASKSET) --demos $(DEMOS) --trials $(TRIALS) --backend $(BACKEND) --out $(OUT)/fewshot_$(notdir $(FROM))
 
 # Closed-loop evaluation of one or more runs (RUNS: space-separated run directories,
 # or a path with {seed} and SEEDS=0,1,2); VIDEOS=N: GIFs of the first N trials per task.
 SEEDS ?=
 VIDEOS ?= 0
 eval: install
-	$(VENV)/bin/skillplug eval --runs $(RUNS) --taskset $(TASKSET) --trials $(TRIALS) --out $(OUT)/eval_$(TASKSET) \
+	$(VENV)/bin/skillplug eval --runs $(RUNS) --taskset $(TASKSET) --trials $(TRIALS) --backend $(BACKEND) --out $(OUT)/eval_$(TASKSET) \
 	  $(if $(SEEDS),--seeds $(SEEDS),) --videos $(VIDEOS)
 
 # Every benchmark that needs no dataset (bench-loader reads one: make demos, then make bench-loader).
 bench: bench-envs bench-train bench-eval
 
+# BENCH_ENVS_ARGS: more options (python -m experiments.bench_envs --help), e.g. --tasks stack_block.
 bench-envs: install
 	mkdir -p $(OUT)
-	$(PY) -m experiments.bench_envs --out $(OUT)/bench_envs.json
+	$(PY) -m experiments.bench_envs --out $(OUT)/bench_envs.json $(BENCH_ENVS_ARGS)
 
 bench-loader: install
 	$(PY) -m experiments.bench_loader --dataset $(DATASET) --out $(OUT)/bench_loader.json

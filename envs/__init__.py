@@ -4,6 +4,9 @@
     env = envs.make("stack_block", num_envs=256, render=True, image_size=(64, 64))
     state = env.reset(keys)          # keys: [256, 2] PRNG keys
     state = env.step(state, actions) # actions: [256, 7] joint-position targets
+
+`backend`: "mujoco" (MuJoCo's C engine, the CPU backend), "mjx-warp" (MJX on
+MuJoCo Warp, for accelerators) or "auto" (MJX-Warp when JAX sees a GPU).
 """
 
 from __future__ import annotations
@@ -11,7 +14,8 @@ from __future__ import annotations
 import jax.numpy as jnp
 
 from envs.batched import BatchedEnv
-from envs.env import EnvConfig, TabletopEnv
+from envs.env import BACKENDS, EnvConfig, TabletopEnv, resolve_backend
+from envs.mujoco_batch import MujocoBatchEnv
 from envs.tasks.block_bridge_place import BlockBridgePlace
 from envs.tasks.block_place import BlockPlace
 from envs.tasks.coffeecup_place import CoffeecupPlace
@@ -81,12 +85,22 @@ def taskset(name: str) -> tuple[str, ...]:
 
 
 def make(name: str, num_envs: int = 1, render: bool = False, image_size=(64, 64),
-         impl: str = "warp", devices: tuple | None = None, **config) -> BatchedEnv:
+         backend: str = "auto", devices: tuple | None = None, **config) -> BatchedEnv | MujocoBatchEnv:
   """A batch of `num_envs` environments of task `name` (per device, when rendering on `devices`).
 
   image_size: (H, W) of both cameras' images, as everywhere in the project.
   """
   if num_envs < 1:
     raise ValueError(f"num_envs must be >= 1, got {num_envs}")
-  env = task_class(name)(EnvConfig(impl=impl, num_envs=num_envs, **config))
+  env = task_class(name)(EnvConfig(backend=resolve_backend(backend), num_envs=num_envs, **config))
+  return batch_of(env, num_envs, render=render, image_size=image_size, devices=devices)
+
+
+def batch_of(env: TabletopEnv, num_envs: int, render: bool = False, image_size=(64, 64),
+             devices: tuple | None = None) -> BatchedEnv | MujocoBatchEnv:
+  """A batch of `num_envs` copies of `env` on the backend it was made for."""
+  if env.backend == "mujoco":
+    if devices is not None and len(devices) > 1:
+      raise ValueError("the 'mujoco' backend runs on the CPU's threads: it takes no devices")
+    return MujocoBatchEnv(env, num_envs, render=render, image_size=image_size)
   return BatchedEnv(env, num_envs, render=render, image_size=image_size, devices=devices)

@@ -16,19 +16,25 @@ from mujoco import mjx
 from envs.env import TabletopEnv
 
 CAMERAS = ("side", "wrist")
+RENDERER = "warp-raycast"  # what datasets and runs record (the C backend's is "mujoco-opengl")
 
 
 class BatchedEnv:
-  """`num_envs` copies of a task: reset(keys[B]) and step(state, actions[B, 7]).
+  """The MJX-Warp backend. `num_envs` copies of a task: reset(keys[B]) and step(state, actions[B, 7]).
 
   With `render=True`, obs also holds `side_rgb` and `wrist_rgb` (uint8,
   [B, H, W, 3], `image_size` = (H, W)) from `mjx.render`; otherwise no image
   is made (state-only mode).
   """
 
+  backend = "mjx-warp"
+
   def __init__(self, env: TabletopEnv, num_envs: int, render: bool = False, image_size=(64, 64),
                devices: tuple | None = None):
+    if env.config.backend != "mjx-warp":
+      raise ValueError(f"BatchedEnv runs MJX-Warp; the environment was made for {env.config.backend!r}")
     self.env = env
+    self.renderer = RENDERER if render else None
     self.devices = devices  # JAX devices a sharded rendering batch runs on (num_envs each)
     self.num_envs = num_envs
     self.render = render
@@ -36,8 +42,6 @@ class BatchedEnv:
     self._env = VmapWrapper(EpisodeWrapper(env, env.episode_length, action_repeat=1))
     self._ctx = None
     if render:
-      if env.config.impl != "warp":
-        raise ValueError("rendering needs the Warp implementation (EnvConfig(impl='warp'))")
       m = env.mj_model
       self._cam_ids = [m.camera(c).id for c in CAMERAS]
       h, w = self.image_size

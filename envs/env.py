@@ -6,6 +6,13 @@ reset sampler, success predicate and scripted expert plan. Everything here
 acts on a single environment and is pure, so batching is `jax.vmap` (see
 `envs.batched`), as in Brax and MuJoCo Playground.
 
+The physics runs on one of two backends (`EnvConfig.backend`): `mjx-warp`
+(MJX on MuJoCo Warp, this class's own `reset`/`step`, for accelerators) or
+`mujoco` (MuJoCo's C engine through `mujoco.batch`, `envs.mujoco_batch`, for
+CPUs). Task logic is written once, as pure functions of the state arrays
+(`qpos`, `xpos`, `sensordata`, ...), and `first_state` / `next_state` turn
+either engine's arrays into the same Brax `State`.
+
 Success is declared, and the episode ends, once the task's predicate has held
 for `SUCCESS_HOLD_STEPS` consecutive control steps: DISCOVERSE checks its
 conditions once, after its expert has released and retreated; checked every
@@ -38,10 +45,23 @@ SOLVER_LIMIT_BITS = {"solver_iterations": int(mjw.OverflowType.ITERATIONS),
                      "linesearch_iterations": int(mjw.OverflowType.LS_ITERATIONS)}
 
 
+BACKENDS = ("auto", "mujoco", "mjx-warp")
+
+
+def resolve_backend(name: str) -> str:
+  """'auto' is MJX-Warp when JAX sees a GPU and MuJoCo's C engine otherwise,
+  where it runs 50-150x faster than Warp on a CPU (README, benchmarks)."""
+  if name not in BACKENDS:
+    raise ValueError(f"unknown backend {name!r}; valid backends: {', '.join(BACKENDS)}")
+  if name == "auto":
+    return "mjx-warp" if jax.default_backend() == "gpu" else "mujoco"
+  return name
+
+
 @dataclasses.dataclass(frozen=True)
 class EnvConfig:
   """Physics and observation settings shared by all tasks."""
-  impl: str = "warp"  # 'warp' (CPU and GPU) or 'jax' (fallback)
+  backend: str = "auto"  # one of BACKENDS; a made environment holds the resolved name
   control_dt: float = scene.CONTROL_DT
   physics_timestep: float = scene.PHYSICS_TIMESTEP
   num_envs: int = 1  # contact buffers are sized for this many worlds
@@ -73,12 +93,15 @@ class TabletopEnv(Env):
   extra_joints: Sequence[str] = ()  # articulated objects' joints (drawer, lid)
 
   def __init__(self, config: EnvConfig = EnvConfig()):
+    config = dataclasses.replace(config, backend=resolve_backend(config.backend))
     self.config = config
     xml = scene.model_xml(self.name, self.objects_xml(), sensors=self._gripper_contact_sensors())
     m = scene.compile_model(xml)
     m.opt.timestep = config.physics_timestep
     self.mj_model = m
-    self.mjx_model = _without_solver_limit_prints(mjx.put_model(m, impl=config.impl))
+    self.mjx_model = None  # the C engine needs no MJX model
+    if config.backend == "mjx-warp":
+      self.mjx_model = _without_solver_limit_prints(mjx.put_model(m, impl="warp"))
     self.n_substeps = int(round(config.control_dt / config.physics_timestep))
     self._body = {m.body(i).name: i for i in range(m.nbody)}
     self._site = {m.site(i).name: i for i in range(m.nsite)}
@@ -152,24 +175,19 @@ class TabletopEnv(Env):
 
   @property
   def backend(self) -> str:  # an abstract property of Brax's Env
-    return f"mjx-{self.config.impl}"
+    return self.config.backend
 
-  def _make_data(self):
-    c = self.config
-    if c.impl == "warp":
-      return mjx.make_data(self.mj_model, impl="warp",
-                           naconmax=c.num_envs * c.contacts_per_env,
-                           njmax=c.constraints_per_env)
-    return mjx.make_data(self.mjx_model)
-
-  def reset(self, rng: jax.Array) -> State:
-    data = self._make_data()
+  # ---- the episode's bookkeeping, on either backend's state arrays ----------
+  def initial_qpos(self, rng: jax.Array) -> tuple[jax.Array, jax.Array]:
+    """(qpos, ctrl) of a reset: the arm at home, the objects sampled from `rng`."""
     qpos = jnp.asarray(self.mj_model.qpos0, jnp.float32)
     qpos = qpos.at[:robot.ARM_DOF].set(robot.HOME_QPOS[:robot.ARM_DOF])
     qpos = qpos.at[robot.ARM_DOF:robot.ARM_DOF + 2].set(robot.HOME_QPOS[robot.ARM_DOF])
     qpos = self.sample_objects(rng, qpos)
-    data = data.replace(qpos=qpos, ctrl=robot.action_to_ctrl(jnp.asarray(robot.HOME_QPOS, jnp.float32)))
-    data = mjx.forward(self.mjx_model, data)
+    return qpos, robot.action_to_ctrl(jnp.asarray(robot.HOME_QPOS, jnp.float32))
+
+  def first_state(self, data) -> State:
+    """The State of a reset, from the physics after its forward pass."""
     zero = jnp.zeros(())
     metrics = {"success": zero, "nan": zero, "overflow": _overflow(data)}
     info = {"first_success_step": jnp.full((), -1, jnp.int32), "t": jnp.zeros((), jnp.int32),
@@ -177,31 +195,44 @@ class TabletopEnv(Env):
     return State(pipeline_state=data, obs=self.observation(data), reward=zero,
                  done=zero, metrics=metrics, info=info)
 
-  def step(self, state: State, action: jax.Array) -> State:
-    if action.shape[-1] != robot.ACTION_DIM:
-      raise ValueError(
-          f"{self.name}: action has dimension {action.shape[-1]}, expected "
-          f"{robot.ACTION_DIM} (6 joint targets + gripper opening)")
-    lo, hi = robot.JOINT_RANGES[:, 0], robot.JOINT_RANGES[:, 1]
-    ctrl = robot.action_to_ctrl(jnp.clip(action, lo, hi))
+  def next_state(self, state: State, data, failed, keep=None) -> State:
+    """The State after one control step whose physics ended in `data`.
+
+    failed: the physics blew up (NaN, or the C engine's instability warning):
+      the episode fails alone, keeping its last good state.
+    keep: also keep the previous physics (default: where failed), as for an
+      episode that has ended and was not simulated.
+    """
     prev = state.pipeline_state
-    data = prev.replace(ctrl=ctrl)
-    data = jax.lax.fori_loop(0, self.n_substeps, lambda _, d: mjx.step(self.mjx_model, d), data)
-    # A blow-up fails this episode only: keep the last finite state, mark done.
-    nan = ~(jnp.all(jnp.isfinite(data.qpos)) & jnp.all(jnp.isfinite(data.qvel)))
-    data = data.where(nan, prev)
-    ok = self.success(data) & ~nan
+    keep = failed if keep is None else keep
+    data = data.where(keep, prev)
+    ok = self.success(data) & ~failed
     t = state.info["t"] + 1
     held = jnp.where(ok, state.info["held"] + 1, 0)
     declared = (held >= SUCCESS_HOLD_STEPS) & (state.info["first_success_step"] < 0)
     first = jnp.where(declared, t - SUCCESS_HOLD_STEPS + 1, state.info["first_success_step"])
     solved = (first >= 0).astype(jnp.float32)
-    done = jnp.maximum(state.done, jnp.maximum(solved, nan.astype(jnp.float32)))
-    metrics = {"success": solved, "nan": jnp.maximum(state.metrics["nan"], nan.astype(jnp.float32)),
+    done = jnp.maximum(state.done, jnp.maximum(solved, failed.astype(jnp.float32)))
+    metrics = {"success": solved, "nan": jnp.maximum(state.metrics["nan"], failed.astype(jnp.float32)),
                "overflow": state.metrics["overflow"] | _overflow(data)}
     info = {**state.info, "first_success_step": first, "t": t, "held": held}
     return state.replace(pipeline_state=data, obs=self.observation(data),
                          reward=declared.astype(jnp.float32), done=done, metrics=metrics, info=info)
+
+  # ---- Brax Env API on MJX-Warp (the C engine: envs.mujoco_batch) ------------
+  def reset(self, rng: jax.Array) -> State:
+    c = self.config
+    data = mjx.make_data(self.mj_model, impl="warp", naconmax=c.num_envs * c.contacts_per_env,
+                         njmax=c.constraints_per_env)
+    qpos, ctrl = self.initial_qpos(rng)
+    return self.first_state(mjx.forward(self.mjx_model, data.replace(qpos=qpos, ctrl=ctrl)))
+
+  def step(self, state: State, action: jax.Array) -> State:
+    check_action(self.name, action)
+    data = state.pipeline_state.replace(ctrl=clipped_ctrl(action))
+    data = jax.lax.fori_loop(0, self.n_substeps, lambda _, d: mjx.step(self.mjx_model, d), data)
+    nan = ~(jnp.all(jnp.isfinite(data.qpos)) & jnp.all(jnp.isfinite(data.qvel)))
+    return self.next_state(state, data, nan)
 
   def observation(self, data):
     q = data.qpos
@@ -213,6 +244,19 @@ class TabletopEnv(Env):
     parts = [jnp.concatenate([data.xpos[self._body[b]], data.xquat[self._body[b]]]) for b in self.objects]
     parts += [data.qpos[self._qadr[j]][None] for j in self.extra_joints]
     return jnp.concatenate(parts) if parts else jnp.zeros((0,))
+
+
+def check_action(task: str, action) -> None:
+  if action.shape[-1] != robot.ACTION_DIM:
+    raise ValueError(
+        f"{task}: action has dimension {action.shape[-1]}, expected "
+        f"{robot.ACTION_DIM} (6 joint targets + gripper opening)")
+
+
+def clipped_ctrl(action):
+  """Actuator controls of a 7-D action, clipped to the joint ranges."""
+  lo, hi = robot.JOINT_RANGES[:, 0], robot.JOINT_RANGES[:, 1]
+  return robot.action_to_ctrl(jnp.clip(action, lo, hi))
 
 
 def _without_solver_limit_prints(mx):
@@ -227,9 +271,9 @@ def _without_solver_limit_prints(mx):
 
 
 def _overflow(data):
-  """The physics' overflow bitmask since reset (0 where the implementation has none)."""
-  impl = getattr(data, "_impl", None)
-  bits = getattr(impl, "overflow", None)
+  """The physics' overflow bitmask (Warp's, or the C engine's `PhysicsState.overflow`)."""
+  impl = getattr(data, "_impl", None)  # mjx.Data's (reading data.overflow itself is deprecated)
+  bits = getattr(impl, "overflow", None) if impl is not None else getattr(data, "overflow", None)
   return jnp.zeros((), jnp.int32) if bits is None else jnp.asarray(bits, jnp.int32).reshape(())
 
 

@@ -4,8 +4,10 @@
     python -m experiments.bench_eval --presets budget --batches 512,1024   # on a GPU
 
 Both numbers are environment control steps per second (batch x steps / time)
-at the same batch and task. "bare" is a jitted `lax.scan` of `env.step` with
-a fixed action; "policy" is the evaluation engine (`evaluate/rollout.py`):
+at the same batch and task, on one backend (`--backend`). "bare" steps the
+environments with a fixed action (a jitted `lax.scan` of `env.step` on
+MJX-Warp, a loop of C batch steps on `mujoco`); "policy" is the episode
+engine (`envs/rollout.py`):
 the policy queried every step with temporal ensembling, plus its
 bookkeeping, and rendering where the preset reads images. Their ratio is
 what the policy and the engine cost; `ms_per_step` also times the
@@ -31,17 +33,17 @@ import jax.numpy as jnp
 
 import envs
 from envs import robot, rollout as env_rollout
-from envs.batched import BatchedEnv
+from envs.rollout import Controller, run_episodes as evaluate
 from skillplug_jax.atomic_json import write_json_atomic
 from skillplug_jax.evaluate.policy_controller import policy_controller
-from skillplug_jax.evaluate.rollout import Controller, evaluate
 from skillplug_jax.train import config, loop
 
 
-def _short_env(task: str, steps: int, per_device: int, render: bool, image_size) -> BatchedEnv:
+def _short_env(task: str, steps: int, per_device: int, render: bool, image_size, backend: str):
   base = envs.task_class(task)
   short = type(base.__name__, (base,), {"time_limit_s": steps * envs.EnvConfig.control_dt})
-  return BatchedEnv(short(envs.EnvConfig(num_envs=per_device)), per_device, render=render, image_size=image_size)
+  env = short(envs.EnvConfig(num_envs=per_device, backend=backend))
+  return envs.batch_of(env, per_device, render=render, image_size=image_size)
 
 
 def _best(fn, repeats: int) -> float:
@@ -54,10 +56,10 @@ def _best(fn, repeats: int) -> float:
   return best
 
 
-def bench(task: str, preset: str, policy: str, batch: int, steps: int, repeats: int) -> dict:
+def bench(task: str, preset: str, policy: str, batch: int, steps: int, repeats: int, backend: str) -> dict:
   cfg = config.preset(preset, policy)
   m = cfg.model
-  benv = _short_env(task, steps, batch, m.use_images, m.image_size)
+  benv = _short_env(task, steps, batch, m.use_images, m.image_size, backend)
   keys = env_rollout.reset_keys(0, batch)
   params = loop.init_params(cfg, jax.random.PRNGKey(0))
   stats = {"action": {"mean": list(robot.HOME_QPOS), "std": [0.01] * 7},
@@ -73,11 +75,22 @@ def bench(task: str, preset: str, policy: str, batch: int, steps: int, repeats: 
   t_policy = _best(engine, repeats)
   ran = out["r"].steps_run
   # bare: the same environments stepped with a fixed action
-  bare_env = _short_env(task, steps, batch, m.use_images, m.image_size)
+  bare_env = _short_env(task, steps, batch, m.use_images, m.image_size, backend)
   hold = jnp.tile(jnp.asarray(robot.HOME_QPOS, jnp.float32), (batch, 1))
-  state = jax.jit(bare_env.reset)(keys)
-  scan = jax.jit(lambda s: jax.lax.scan(lambda s, _: (bare_env.step(s, hold), None), s, None, length=ran)[0].done)
-  t_bare = _best(lambda: scan(state), repeats)
+  if bare_env.backend == "mujoco":
+    state = bare_env.reset(keys)
+
+    def bare():
+      s = bare_env.reset(keys)
+      for _ in range(ran):
+        s = bare_env.step(s, hold)
+      return s.done
+
+    t_bare = _best(bare, repeats)
+  else:
+    state = jax.jit(bare_env.reset)(keys)
+    scan = jax.jit(lambda s: jax.lax.scan(lambda s, _: (bare_env.step(s, hold), None), s, None, length=ran)[0].done)
+    t_bare = _best(lambda: scan(state), repeats)
   # the controller alone (network, normalisation, ensembling) on a frozen state
   cstate = controller.init(state)
 
@@ -93,7 +106,7 @@ def bench(task: str, preset: str, policy: str, batch: int, steps: int, repeats: 
   hold_controller = Controller(lambda s: (), lambda wts, cs, s, t: (hold, cs, {}), name="hold")
   t_hold = _best(lambda: evaluate(benv, hold_controller, keys).success, repeats)
   t_only = _best(lambda: policy_only(controller.weights, cstate), repeats)
-  return dict(task=task, preset=preset, policy=policy, batch=batch, steps=ran,
+  return dict(task=task, backend=benv.backend, preset=preset, policy=policy, batch=batch, steps=ran,
               images=m.use_images, bare_control_steps_per_s=round(batch * ran / t_bare, 1),
               policy_control_steps_per_s=round(batch * ran / t_policy, 1),
               policy_over_bare_time=round(t_policy / t_bare, 2),
@@ -110,6 +123,7 @@ def main(argv=None):
   p.add_argument("--batches", default="16,64")
   p.add_argument("--steps", type=int, default=40, help="control steps per timed episode batch")
   p.add_argument("--repeats", type=int, default=2)
+  p.add_argument("--backend", default="auto", choices=envs.BACKENDS)
   p.add_argument("--out", default="results/bench_eval.json")
   args = p.parse_args(argv)
   envs.quiet_warp()
@@ -117,7 +131,7 @@ def main(argv=None):
   for preset in args.presets.split(","):
     for b in [int(v) for v in args.batches.split(",") if v]:
       for policy in args.policies.split(","):
-        rows.append(bench(args.task, preset, policy, b, args.steps, args.repeats))
+        rows.append(bench(args.task, preset, policy, b, args.steps, args.repeats, args.backend))
         print(json.dumps(rows[-1]), flush=True)
   out = dict(device=str(jax.devices()[0]), platform=jax.devices()[0].platform,
              cpu_count=os.cpu_count(), results=rows)

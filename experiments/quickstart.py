@@ -2,17 +2,18 @@
 
     make quickstart      # or: python -m experiments.quickstart --out results/quickstart
 
-1. expert demonstrations (state only, 10 per task) of the `quickstart3` tasks
-   and of one unseen task (block_place), as RLDS datasets;
+1. expert demonstrations (state only, 10 per task) of the 7 `discoverse7`
+   tasks and of the 4 unseen `discoverse_fewshot4` tasks, as RLDS datasets;
 2. multi-task pretraining of ACT and ACT+SkillPlug at the `quick` preset;
-3. closed-loop evaluation of both on the pretraining tasks (paired trials);
-4. few-shot adaptation of both to the unseen task, then its evaluation;
+3. closed-loop evaluation of both on the 7 pretraining tasks (paired trials);
+4. few-shot adaptation of both to each unseen task, then its evaluation;
 5. the tables (success rate, policy queries per successful episode, and the
    same over paired trials), printed and written beside the runs.
 
-Stages 2-4 run as two processes, one per policy: the physics and the quick
-networks keep about one core busy each, so the two cores of a laptop-class
-CPU finish both in the time of the slower one.
+The physics runs on the `auto` backend (MuJoCo's C engine on a CPU). Stages
+2-4 run as two processes, one per policy: the physics and the quick networks
+keep about one core busy each, so the two cores of a laptop-class CPU finish
+both in the time of the slower one.
 
 Every stage reuses what an earlier (or killed) run left: finished datasets
 and checkpoints are not redone. The numbers are a tiny-budget smoke result,
@@ -36,8 +37,8 @@ from skillplug_jax.atomic_json import write_json_atomic, write_text_atomic
 from skillplug_jax.evaluate import protocol, tables
 from skillplug_jax.train import config, loop
 
-PRETRAIN_TASKSET = "quickstart3"
-FEWSHOT_TASKSET = "block_place"
+PRETRAIN_TASKSET = "discoverse7"
+FEWSHOT_TASKSET = "discoverse_fewshot4"
 POLICIES = ("act", "skillplug")
 
 
@@ -80,10 +81,12 @@ def run(out: Path, trials: int, demos: int, seed: int) -> dict:
   print("[quickstart] expert demonstrations (state only) ...", file=sys.stderr, flush=True)
   source = _pretrain_config("act", out, demos, seed)
   loop.load_data(source)
-  loop.load_data(fewshot.fewshot_config(source, source.run_dir, FEWSHOT_TASKSET, FEWSHOT_TASKSET, demos))
+  first_unseen = envs.taskset(FEWSHOT_TASKSET)[0]  # the dataset holds every unseen task
+  loop.load_data(fewshot.fewshot_config(source, source.run_dir, first_unseen, FEWSHOT_TASKSET, demos))
   stages = {"demonstrations": round(time.time() - t_start, 1)}
   # 2-4. one process per policy: physics and small networks use about one core each
-  print(f"[quickstart] pretrain, evaluate and adapt {' and '.join(POLICIES)} in parallel "
+  print(f"[quickstart] pretrain, evaluate and adapt {' and '.join(POLICIES)} in parallel, "
+        f"physics on {envs.resolve_backend('auto')} "
         "(a line per finished stage) ...", file=sys.stderr, flush=True)
   t0 = time.time()
   with ProcessPoolExecutor(len(POLICIES), mp_context=multiprocessing.get_context("spawn")) as pool:
@@ -96,7 +99,7 @@ def run(out: Path, trials: int, demos: int, seed: int) -> dict:
   return dict(pretrain=merged_summary(parts, "pretrain", envs.taskset(PRETRAIN_TASKSET)),
               fewshot=merged_summary(parts, "fewshot", envs.taskset(FEWSHOT_TASKSET)), stages_s=stages,
               wall_s=round(time.time() - t_start, 1), trials=trials, demos=demos, seed=seed,
-              device=str(jax.devices()[0]), pretrain_taskset=PRETRAIN_TASKSET,
+              device=str(jax.devices()[0]), backend=envs.resolve_backend("auto"), pretrain_taskset=PRETRAIN_TASKSET,
               fewshot_taskset=FEWSHOT_TASKSET, runs=[part["run"] for part in parts])
 
 
@@ -105,7 +108,7 @@ def report(result: dict) -> str:
   lines = [
       "Multi-task:", "",
       tables.report(result["pretrain"], f"quick preset, {d} demos per task, {t} paired trials per task"), "",
-      "Few-shot on the unseen task:", "",
+      "Few-shot on the unseen tasks:", "",
       tables.report(result["fewshot"], f"{d} demos, {t} paired trials"), "",
       "Stages (s): " + ", ".join(f"{k} {v:.0f}" for k, v in result["stages_s"].items()),
       f"Runs: {', '.join(result['runs'])}",

@@ -16,15 +16,16 @@ def cmd_experts(args) -> int:
   from envs import rollout
 
   names = [n for part in args.taskset.split(",") for n in envs.taskset(part)]
+  backend = envs.resolve_backend(args.backend)
   rows = []
   bar = tqdm(names, desc="experts", unit="task", file=sys.stderr)
   for name in bar:
     bar.set_postfix_str(name)
-    env = envs.make(name, num_envs=min(args.batch, args.episodes), impl=args.impl)
+    env = envs.make(name, num_envs=min(args.batch, args.episodes), backend=backend)
     results, t0 = [], time.time()
     for start in range(0, args.episodes, env.num_envs):
       keys = rollout.reset_keys(args.seed, env.num_envs, offset=start)
-      results.append(rollout.run_expert(env, keys))
+      results.append(rollout.run_episodes(env, rollout.expert_controller(env), keys))
     succ = np.concatenate([r.success for r in results])[:args.episodes]
     first = np.concatenate([r.first_success_step for r in results])[:args.episodes]
     nan = np.concatenate([r.nan for r in results])[:args.episodes]
@@ -38,7 +39,7 @@ def cmd_experts(args) -> int:
         solver_limit_episodes=envs.env.solver_limit_counts(overflow),
         wall_s=round(time.time() - t0, 1)))
   print(f"\nScripted experts, {args.episodes} episodes per task (seed {args.seed}, "
-        f"impl={args.impl}, {jax.devices()[0].platform}):\n")
+        f"backend {backend}, {jax.devices()[0].platform}):\n")
   print("| task | abbr | success | steps to success (steps / s) | limit (s) | NaN | solver / line-search limit | wall (s) |")
   print("|---|---|---|---|---|---|---|---|")
   for r in rows:
@@ -48,10 +49,11 @@ def cmd_experts(args) -> int:
           f"{r['time_limit_s']:.0f} | {r['nan_episodes']} | {lim['solver_iterations']} / "
           f"{lim['linesearch_iterations']} | {r['wall_s']} |")
   print("\nSteps to success: control steps to the first step of the 0.5 s the success held. The solver "
-        "column counts episodes in which MuJoCo Warp's solver or its line search stopped at its "
-        "iteration limit at least once (its per-step warning is silenced).")
+        "column counts episodes in which the constraint solver (or, on MuJoCo Warp, its line search) "
+        "stopped at its iteration limit at least once (Warp's per-step warning is silenced; the C "
+        "engine is sampled at the last substep of each control step).")
   if args.json:
-    payload = dict(taskset=args.taskset, episodes=args.episodes, seed=args.seed, impl=args.impl,
+    payload = dict(taskset=args.taskset, episodes=args.episodes, seed=args.seed, backend=backend,
                    device=str(jax.devices()[0]), tasks=rows)
     from skillplug_jax.atomic_json import write_json_atomic
     write_json_atomic(args.json, payload)
@@ -64,7 +66,7 @@ def cmd_demos(args) -> int:
 
   cfg = demos.DemoConfig(taskset=args.taskset, demos=args.demos, images=not args.state_only,
                          image_size=(args.image_size, args.image_size), seed=args.seed,
-                         batch=args.batch, impl=args.impl)
+                         batch=args.batch, backend=args.backend)
   t0 = time.time()
   path = demos.make_demos(cfg, out=args.out)
   d = loader.load_demonstrations(path, images=cfg.images)
@@ -86,7 +88,8 @@ def cmd_pretrain(args) -> int:
   if args.distributed:  # several hosts: coordinator and process ids come from the cluster's env
     jax.distributed.initialize()
   cfg = config.preset(args.preset, policy=args.policy)
-  cfg = config.override(cfg, [f"taskset={args.taskset}", f"seed={args.seed}"] + list(args.set or []))
+  cfg = config.override(cfg, [f"taskset={args.taskset}", f"seed={args.seed}", f"backend={args.backend}"]
+                        + list(args.set or []))
   if args.workdir:
     cfg = config.override(cfg, [f"workdir={args.workdir}"])
   run = loop.train(cfg)
@@ -104,7 +107,8 @@ def cmd_eval(args) -> int:
   tasks = [n for part in args.taskset.split(",") for n in envs.taskset(part)]
   video_dir = args.video_dir or (f"{args.out}_videos" if args.out else "videos")
   out = protocol.evaluate_runs(runs, tasks, args.trials, seed=args.seed, batch=args.batch,
-                               query_every=args.query_every, videos=args.videos, video_dir=video_dir)
+                               query_every=args.query_every, videos=args.videos, video_dir=video_dir,
+                               backend=args.backend)
   md = tables.report(out, f"{args.trials} paired trials per task (seed {args.seed})")
   print("\n" + md + "\n")
   print(rows_legend(out["rows"]))
@@ -139,7 +143,7 @@ def cmd_fewshot(args) -> int:
 
   runs = [r for part in args.runs for r in part.split(",") if r]
   out = fewshot.adapt_and_evaluate(runs, args.taskset, args.demos, args.trials, args.seed, args.batch,
-                                   steps=args.steps)
+                                   steps=args.steps, backend=args.backend)
   md = tables.report(out, f"few-shot, {args.demos} demos per task, {args.trials} paired trials per task")
   print("\n" + md + "\n")
   print(rows_legend(out["rows"]))
@@ -175,6 +179,12 @@ def _dir_mb(path) -> float:
   return sum(f.stat().st_size for f in path.rglob("*") if f.is_file()) / 2**20
 
 
+def _backend_flag(parser, what: str = "physics backend") -> None:
+  parser.add_argument("--backend", default="auto", choices=("auto", "mujoco", "mjx-warp"),
+                      help=f"{what}: mujoco (MuJoCo's C engine, fastest on a CPU), mjx-warp (MJX on "
+                           "MuJoCo Warp, for GPUs), auto (mjx-warp when JAX sees a GPU, else mujoco)")
+
+
 def build_parser() -> argparse.ArgumentParser:
   p = argparse.ArgumentParser(prog="skillplug", description=__doc__)
   sub = p.add_subparsers(dest="command", required=True)
@@ -184,7 +194,7 @@ def build_parser() -> argparse.ArgumentParser:
   e.add_argument("--episodes", type=int, default=100, help="seeded episodes per task")
   e.add_argument("--batch", type=int, default=100, help="environments simulated at once")
   e.add_argument("--seed", type=int, default=0)
-  e.add_argument("--impl", default="warp", choices=("warp", "jax"), help="MJX implementation")
+  _backend_flag(e)
   e.add_argument("--json", default=None, help="also write the table as JSON here")
   e.set_defaults(fn=cmd_experts)
 
@@ -197,7 +207,7 @@ def build_parser() -> argparse.ArgumentParser:
   d.add_argument("--image-size", type=int, default=64, help="square camera images, pixels")
   d.add_argument("--seed", type=int, default=0, help="reset seed of episode 0 (episode i uses fold_in(seed, i))")
   d.add_argument("--batch", type=int, default=64, help="environments simulated at once")
-  d.add_argument("--impl", default="warp", choices=("warp", "jax"), help="MJX implementation")
+  _backend_flag(d)
   d.set_defaults(fn=cmd_demos)
 
   t = sub.add_parser("pretrain", help="train a multi-task policy (generates its demos when missing)",
@@ -210,6 +220,7 @@ def build_parser() -> argparse.ArgumentParser:
   t.add_argument("--set", action="append", metavar="KEY=VALUE",
                  help="override a config field, e.g. --set lr=3e-4 --set model.hidden=128 --set loss.sd=0.5")
   t.add_argument("--workdir", default="", help="run directory (default results/runs/<taskset>_<policy>_<preset>_seed<seed>)")
+  _backend_flag(t, "physics of the demonstrations generated when missing (recorded in the run's config)")
   t.add_argument("--distributed", action="store_true", help="call jax.distributed.initialize() (multi-host)")
   t.set_defaults(fn=cmd_pretrain)
 
@@ -228,6 +239,7 @@ def build_parser() -> argparse.ArgumentParser:
   v.add_argument("--out", default="", help="write OUT.json, OUT.md, OUT.csv, OUT.queries.csv, OUT.queries_paired.csv")
   v.add_argument("--videos", type=int, default=0, help="GIFs (side camera) of the first N trials per task")
   v.add_argument("--video-dir", default="", help="where the GIFs go (default OUT_videos, or ./videos)")
+  _backend_flag(v, "physics the policies are evaluated on")
   v.set_defaults(fn=cmd_eval)
 
   f = sub.add_parser("fewshot", help="adapt multi-task runs to unseen tasks from a few demos, then evaluate",
@@ -242,6 +254,7 @@ def build_parser() -> argparse.ArgumentParser:
   f.add_argument("--seed", type=int, default=1000)
   f.add_argument("--batch", type=int, default=50)
   f.add_argument("--out", default="", help="write OUT.json, OUT.md, OUT.csv, OUT.queries.csv, OUT.queries_paired.csv")
+  _backend_flag(f, "physics of evaluation (the few-shot demos follow the source run's backend)")
   f.set_defaults(fn=cmd_fewshot)
   return p
 

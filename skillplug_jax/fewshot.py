@@ -38,7 +38,8 @@ def fewshot_config(source: TrainConfig, source_dir: Path, task: str, taskset: st
 
 def adapt_and_evaluate(source_runs: Sequence[str | Path], taskset: str = "discoverse_fewshot4",
                        demos: int = 10, trials: int = 50, seed: int = protocol.EVAL_SEED,
-                       batch: int = 50, steps: int | None = None, progress: bool = True) -> dict:
+                       batch: int = 50, steps: int | None = None, progress: bool = True,
+                       backend: str = "auto") -> dict:
   """Fine-tune every source run on every task of `taskset`, evaluate, tabulate.
 
   Rows are the source runs' training configurations (`groups`): the
@@ -58,10 +59,13 @@ def adapt_and_evaluate(source_runs: Sequence[str | Path], taskset: str = "discov
               file=sys.stderr)
       run = loop.train(cfg, progress=progress)
       controller, _ = load_controller(run)
+      protocol.warn_if_other_renderer(run, cfg, backend)
       r = protocol.evaluate_task(task, controller, trials, seed, batch, render=cfg.model.use_images,
-                                 image_size=cfg.model.image_size)
+                                 image_size=cfg.model.image_size, backend=backend)
       r.update(run=str(run), source=str(src), policy=label, train_seed=source.seed,
-               config=groups.training_key(source), trainable=list(cfg.trainable), steps=cfg.max_steps)
+               config=groups.training_key(source), trainable=list(cfg.trainable), steps=cfg.max_steps,
+               trained_on=source.backend)
       results.append(r)
-  return dict(taskset=taskset, demos=demos, trials=trials, seed=seed, results=results,
+  return dict(taskset=taskset, demos=demos, trials=trials, seed=seed, backend=envs.resolve_backend(backend),
+              results=results,
               **tables.summarise(results, tasks))

@@ -7,6 +7,7 @@ import numpy as np
 
 import envs
 from skillplug_jax.data import normalization, rlds
+from skillplug_jax.data.demos import DemoConfig
 from skillplug_jax.data.recording import Episode
 
 D = envs.OBJECT_STATE_DIM
@@ -37,4 +38,10 @@ def write_two_task_demos(root: Path, rng, tasks=("jujube_pick", "kiwi_place")) -
   """3 random state-only episodes per task, where a `demos=3` training run on `tasks` looks."""
   records = [rlds.EpisodeRecord(task, 0, i, synthetic_episode(rng, int(rng.integers(8, 40))))
              for task in tasks for i in range(3)]
-  write_synthetic(root, f"{'+'.join(tasks)}_3demos_state_seed0", rlds.DatasetSpec(tuple(tasks), None), records)
+  write_synthetic(root, state_dataset_name(",".join(tasks)), rlds.DatasetSpec(tuple(tasks), None), records)
+
+
+def state_dataset_name(taskset: str, demos: int = 3) -> str:
+  """Where a state-only training run with `demos` per task looks for its dataset (its name holds
+  the backend: these synthetic episodes stand in for the C engine's, `auto` on a CPU)."""
+  return DemoConfig(taskset=taskset, demos=demos, images=False, backend="mujoco").name

@@ -78,10 +78,10 @@ def test_corrupt_record_is_named_when_read(dataset, tmp_path):
 
 
 def test_regenerate_advice_repeats_the_generating_command(tmp_path):
-  cfg = dict(taskset="jujube_pick", demos=2, images=False, image_size=[64, 64], seed=3, batch=2, impl="warp")
+  cfg = dict(taskset="jujube_pick", demos=2, images=False, image_size=[64, 64], seed=3, batch=2, backend="mujoco")
   advice = rlds.regenerate_advice(tmp_path / "name", {"config": cfg})
   assert f"Delete {tmp_path / 'name'} and generate it again: `skillplug demos --taskset jujube_pick --demos 2 " \
-         f"--state-only --seed 3 --out {tmp_path}`" in advice
+         f"--state-only --seed 3 --backend mujoco --out {tmp_path}`" in advice
   cfg.update(images=True, image_size=[32, 32])
   assert "--image-size 32 --seed 3" in rlds.regenerate_advice(tmp_path / "name", {"config": cfg})
   assert rlds.regenerate_advice(tmp_path / "x", {"test": True}) == f"Delete {tmp_path / 'x'} and write it again"
@@ -147,6 +147,29 @@ def test_checkpoint_of_another_model_is_not_called_damaged(finished_run, data_di
   with pytest.raises(checkpoint.CheckpointError, match="does not fit this model: .* has shape") as info:
     loop.load_params(finished_run[0], like=like)
   assert not isinstance(info.value, checkpoint.DamagedCheckpoint)
+
+
+def test_evaluation_reads_the_parameters_without_an_optimizer(finished_run, monkeypatch):
+  """load_params gets exactly the parameters that restoring the whole training state gets,
+  and builds no optimiser to do so."""
+  run = finished_run[0]
+  cfg = checkpoint.read_config(run)
+  params = loop.init_params(cfg, jax.random.PRNGKey(0))
+  whole = loop.TrainState(jax.numpy.zeros((), "int32"), params, loop.optimizer(cfg, params).init(params))
+  mngr = checkpoint.manager(run)
+  whole, whole_step, _ = checkpoint.restore_latest(mngr, whole)
+  mngr.close()
+
+  def no_optimizer(*args, **kwargs):
+    raise AssertionError("load_params built an optimizer")
+
+  monkeypatch.setattr(loop, "optimizer", no_optimizer)
+  _, params, step = loop.load_params(run)
+  assert step == whole_step == int(whole.step) == 6
+  assert jax.tree.structure(params) == jax.tree.structure(whole.params)
+  for x, y in zip(jax.tree.leaves(whole.params), jax.tree.leaves(params)):
+    assert isinstance(y, jax.Array) and y.dtype == x.dtype
+    np.testing.assert_array_equal(np.asarray(y), np.asarray(x))
 
 
 def test_resume_falls_back_to_the_previous_intact_checkpoint(finished_run, data_dir, tmp_path, capsys):

@@ -13,11 +13,11 @@ import pytest
 
 import envs
 from envs import rollout as env_rollout
-from envs.batched import BatchedEnv
+from envs.mujoco_batch import MujocoBatchEnv
 from envs.env import SUCCESS_HOLD_STEPS
 from skillplug_jax.evaluate import groups, protocol, tables
 from skillplug_jax.evaluate.policy_controller import policy_controller, temporal_ensemble
-from skillplug_jax.evaluate.rollout import EpisodeResults, evaluate, expert_controller
+from envs.rollout import EpisodeResults, expert_controller, run_episodes
 from skillplug_jax.model import config as model_config
 from skillplug_jax.model.policy import Policy
 from skillplug_jax.train import loop
@@ -29,37 +29,42 @@ TASK = "jujube_pick"
 
 @pytest.fixture(scope="module")
 def benv():
-  return envs.make(TASK, num_envs=3)
+  return envs.make(TASK, num_envs=3, backend="mujoco")
 
 
-def test_expert_through_engine_reproduces_expert(benv):
+@pytest.mark.parametrize("backend", ["mujoco", "mjx-warp"])
+def test_engine_records_what_it_runs_on_both_backends(backend):
+  """The engine's two loops (jitted while_loop on MJX-Warp, host loop on the C
+  engine) count steps and queries alike, and a recorded run is the same run."""
+  env = envs.make(TASK, num_envs=3, backend=backend)
   keys = env_rollout.reset_keys(4, 3)
-  ref = env_rollout.run_expert(benv, keys)
-  got = evaluate(benv, expert_controller(benv), keys)
-  assert ref.success.all()
-  np.testing.assert_array_equal(got.success, ref.success)
-  np.testing.assert_array_equal(got.first_success_step, ref.first_success_step)
+  got = run_episodes(env, expert_controller(env), keys)
+  rec = run_episodes(env, expert_controller(env), keys, record=True)
+  assert got.success.all() and not got.nan.any() and got.routing is None
+  for f in ("success", "first_success_step", "queries", "overflow"):
+    np.testing.assert_array_equal(getattr(rec, f), getattr(got, f), err_msg=f)
   # one query per step until success is declared, after the predicate held for SUCCESS_HOLD_STEPS
-  np.testing.assert_array_equal(got.queries, ref.first_success_step + SUCCESS_HOLD_STEPS - 1)
-  assert not got.nan.any() and got.routing is None
-  np.testing.assert_array_equal(got.overflow, ref.overflow)  # the same physics, the same solver-limit bits
+  np.testing.assert_array_equal(got.queries, got.first_success_step + SUCCESS_HOLD_STEPS - 1)
+  traj = rec.trajectory
+  np.testing.assert_array_equal(traj.alive.sum(0), got.queries)  # a step recorded per query
+  assert traj.action.shape == (got.steps_run, 3, 7) and got.steps_run == got.queries.max()
+  np.testing.assert_allclose(traj.observation["joint_pos"][0], env.reset(keys).obs["joint_pos"], atol=1e-6)
 
 
-class PoisonedEnv(BatchedEnv):
+class PoisonedEnv(MujocoBatchEnv):
   """Episode 0's velocities become NaN before its 4th step: a physics blow-up."""
 
   def step(self, state, actions):
-    d = state.pipeline_state
-    hit = state.info["t"][0] == 3
-    qvel = d.qvel.at[0].set(jnp.where(hit, jnp.nan, d.qvel[0]))
-    return super().step(state.replace(pipeline_state=d.replace(qvel=qvel)), actions)
+    if int(state.info["t"][0]) == 3:
+      self._saved["qvel"][0] = np.nan
+    return super().step(state, actions)
 
 
 def test_nan_episode_fails_alone(benv):
   keys = env_rollout.reset_keys(4, 3)
   poisoned = PoisonedEnv(benv.env, 3)
-  got = evaluate(poisoned, expert_controller(poisoned), keys)
-  ref = evaluate(benv, expert_controller(benv), keys)
+  got = run_episodes(poisoned, expert_controller(poisoned), keys)
+  ref = run_episodes(benv, expert_controller(benv), keys)
   assert got.nan.tolist() == [True, False, False]
   assert not got.success[0] and got.success[1:].all()
   np.testing.assert_array_equal(got.first_success_step[1:], ref.first_success_step[1:])
@@ -73,15 +78,15 @@ def test_two_devices_match_one_and_videos_follow_episodes(tmp_path):
       import envs
       from envs import rollout as R
       from envs.env import SUCCESS_HOLD_STEPS
-      from skillplug_jax.evaluate.rollout import EpisodeResults, evaluate, expert_controller, local_devices_for
+      from envs.rollout import expert_controller, local_devices_for, run_episodes as evaluate
       envs.quiet_warp()
       devices = local_devices_for(4)
       assert len(devices) == 2 and local_devices_for(1) is None
       assert local_devices_for(4, render=True) is None  # CPU shards would share one render context
       keys = R.reset_keys(4, 4)
-      one = envs.make("jujube_pick", num_envs=4, render=True, image_size=(32, 32))
+      one = envs.make("jujube_pick", num_envs=4, render=True, image_size=(32, 32), backend="mjx-warp")
       ref = evaluate(one, expert_controller(one), keys, frames=2)
-      two = envs.make("jujube_pick", num_envs=2)
+      two = envs.make("jujube_pick", num_envs=2, backend="mjx-warp")
       got = evaluate(two, expert_controller(two), keys, devices)
       assert ref.success.all(), ref
       for f in ("success", "first_success_step", "nan", "queries"):
@@ -141,16 +146,16 @@ class ShortJujubePick(envs.TASKS[TASK]):
 
 
 def test_policy_in_the_loop_records_routing_and_queries():
-  benv = BatchedEnv(ShortJujubePick(envs.EnvConfig(num_envs=3)), 3)
+  benv = MujocoBatchEnv(ShortJujubePick(envs.EnvConfig(backend="mujoco")), 3)
   m, params, stats = _tiny_policy()
   keys = env_rollout.reset_keys(9, 3)
-  every = evaluate(benv, policy_controller(m, params, stats), keys)
+  every = run_episodes(benv, policy_controller(m, params, stats), keys)
   steps = every.steps_run
   assert steps == benv.episode_length  # an untrained policy does not succeed
   assert (every.queries == steps).all()
   assert every.routing.shape == (steps, 3, 3)
   np.testing.assert_allclose(every.routing.sum(-1), 1.0, rtol=1e-5)
-  chunked = evaluate(benv, policy_controller(m, params, stats, query_every=5), keys)
+  chunked = run_episodes(benv, policy_controller(m, params, stats, query_every=5), keys)
   assert (chunked.queries == -(-steps // 5)).all()
   assert np.isnan(chunked.routing[1]).all() and not np.isnan(chunked.routing[5]).any()
   # another run of the same model reuses the compiled loop (its weights are an argument)
@@ -159,8 +164,8 @@ def test_policy_in_the_loop_records_routing_and_queries():
   other = jax.tree.unflatten(tree, [x + n for x, n in zip(leaves, noise)])  # router no longer uniform
   c1, c2 = policy_controller(m, params, stats), policy_controller(m, other, stats)
   assert c1.act is c2.act and c1.init is c2.init
-  assert not np.allclose(evaluate(benv, c2, keys).routing, every.routing)
-  fixed = evaluate(benv, policy_controller(m, params, stats, routing=[0.0, 1.0, 0.0]), keys)
+  assert not np.allclose(run_episodes(benv, c2, keys).routing, every.routing)
+  fixed = run_episodes(benv, policy_controller(m, params, stats, routing=[0.0, 1.0, 0.0]), keys)
   np.testing.assert_array_equal(fixed.routing[0], np.tile([0.0, 1.0, 0.0], (3, 1)))
   with pytest.raises(ValueError, match="query_every must be in 1..8"):
     policy_controller(m, params, stats, query_every=9)
@@ -213,7 +218,7 @@ def test_trials_are_paired_across_policies(monkeypatch):
     return EpisodeResults(success=np.ones(b, bool), first_success_step=codes, nan=np.zeros(b, bool),
                           queries=codes, routing=None, steps_run=1)
 
-  monkeypatch.setattr(protocol, "evaluate", start_of_each_episode)
+  monkeypatch.setattr(protocol, "run_episodes", start_of_each_episode)
   act, skillplug = _tiny_policy("act"), _tiny_policy("skillplug")
   a = protocol.evaluate_task(TASK, policy_controller(*act), trials, batch=2)
   b = protocol.evaluate_task(TASK, policy_controller(*skillplug), trials, batch=5)
@@ -337,8 +342,8 @@ def test_eval_cli_and_quickstart_print_and_write_every_table(tmp_path, monkeypat
     assert printed.count(title) == 1, title
   assert "ACT+SkillPlug (num_skills=2): quick preset, seeds [0]" in printed
   n, episodes = len(results), sum(r["trials"] for r in results)
-  assert (f"solver stopped at its iteration limit in {n} and its line search in 0 of {episodes} episodes"
-          in printed)
+  assert (f"solver stopped at its iteration limit in {n} and its line search (MuJoCo Warp only) in 0 of "
+          f"{episodes} episodes" in printed)
   saved = json.loads((tmp_path / "ev.json").read_text())
   assert saved["rows"]["ACT+SkillPlug (num_skills=4)"]["seeds"] == [0, 1, 2]
   assert (tmp_path / "ev.md").read_text().count("| Method |") == 3

@@ -1,4 +1,8 @@
-"""Task logic: registry, reset sampling, success checks (hand-placed states), IK."""
+"""Task logic: registry, reset sampling, success checks (hand-placed states), IK.
+
+Task logic is backend-agnostic (pure functions of the state arrays), so it is
+checked on environments made for MuJoCo's C engine, which need no MJX model.
+"""
 
 import math
 from types import SimpleNamespace
@@ -38,6 +42,8 @@ def test_unknown_names_are_rejected_with_the_valid_ones_listed():
   with pytest.raises(ValueError, match="unknown taskset 'discoverse8'.*discoverse7"):
     envs.taskset("discoverse8")
   assert envs.taskset("mouse_push") == ("mouse_push",)
+  with pytest.raises(ValueError, match="unknown backend 'bullet'; valid backends: auto, mujoco, mjx-warp"):
+    envs.TASKS["mouse_push"](EnvConfig(backend="bullet"))
 
 
 def _quat(axis, angle):
@@ -124,7 +130,7 @@ CASES = {
 
 @pytest.fixture(scope="module")
 def task_envs():
-  return {name: cls(EnvConfig()) for name, cls in envs.TASKS.items()}
+  return {name: cls(EnvConfig(backend="mujoco")) for name, cls in envs.TASKS.items()}
 
 
 @pytest.mark.parametrize("name", sorted(CASES))

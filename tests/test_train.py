@@ -13,7 +13,7 @@ from skillplug_jax.data import normalization, rlds
 from skillplug_jax.train import checkpoint, config, loop
 from skillplug_jax.train.scalars import read_metrics
 from host_devices import run_on_host_devices
-from synthetic import synthetic_episode, write_synthetic, write_two_task_demos
+from synthetic import state_dataset_name, synthetic_episode, write_synthetic, write_two_task_demos
 
 TASKS = ("jujube_pick", "kiwi_place")
 TARGET = "block_place"  # an unseen task for the few-shot runs
@@ -31,7 +31,7 @@ def data_dir(tmp_path_factory):
     ep.action[:] = 3.0 * ep.action + 2.0
     ep.observation["joint_pos"][:] = 4.0 * ep.observation["joint_pos"] - 1.0
     target.append(rlds.EpisodeRecord(TARGET, 0, i, ep))
-  write_synthetic(root, f"{TARGET}_3demos_state_seed0", rlds.DatasetSpec((TARGET,), None), target)
+  write_synthetic(root, state_dataset_name(TARGET), rlds.DatasetSpec((TARGET,), None), target)
   return root
 
 
@@ -115,7 +115,7 @@ def test_skillplug_fewshot_trains_router_and_head_on_source_statistics(data_dir,
   loop.train(few, progress=False)
   assert _changed_groups(source, few.run_dir) == {"router", "action_head"}
   source_stats = checkpoint.read_stats(source)
-  target_stats = normalization.read_stats(data_dir / f"{TARGET}_3demos_state_seed0")
+  target_stats = normalization.read_stats(data_dir / state_dataset_name(TARGET))
   assert not np.allclose(target_stats["action"]["mean"], source_stats["action"]["mean"], atol=0.5)
   assert not np.allclose(target_stats["joint_pos"]["std"], source_stats["joint_pos"]["std"], atol=0.5)
   assert normalised_with == [source_stats]

@@ -35,7 +35,7 @@ class DemoConfig:
   image_size: tuple[int, int] = (64, 64)  # (H, W)
   seed: int = 0
   batch: int = 64  # environments simulated at once
-  impl: str = "warp"
+  backend: str = "auto"  # envs.BACKENDS; the dataset's name and metadata hold the resolved one
 
   @property
   def tasks(self) -> tuple[str, ...]:
@@ -44,7 +44,8 @@ class DemoConfig:
   @property
   def name(self) -> str:
     obs = f"img{self.image_size[0]}x{self.image_size[1]}" if self.images else "state"
-    return f"{self.taskset.replace(',', '+')}_{self.demos}demos_{obs}_seed{self.seed}"
+    return (f"{self.taskset.replace(',', '+')}_{self.demos}demos_{obs}_seed{self.seed}_"
+            f"{envs.resolve_backend(self.backend)}")
 
   @property
   def spec(self) -> rlds.DatasetSpec:
@@ -96,7 +97,8 @@ def make_demos(cfg: DemoConfig, out: str | os.PathLike = "results/datasets", pro
   building = Path(out) / f".{cfg.name}.building"
   shutil.rmtree(building, ignore_errors=True)
   metadata = dict(generator="skillplug_jax.data.demos", config=_config_dict(cfg),
-                  device=str(jax.devices()[0]),
+                  device=str(jax.devices()[0]), backend=envs.resolve_backend(cfg.backend),
+                  renderer=renderer_of(cfg.backend) if cfg.images else None,
                   per_task={t: {k: v for k, v in s.items() if k != "reset_index"} for t, s in stats.items()})
   version_dir = rlds.write_dataset(building, cfg.spec, records, metadata)
   actions, joints = [], []
@@ -111,8 +113,15 @@ def make_demos(cfg: DemoConfig, out: str | os.PathLike = "results/datasets", pro
   return final
 
 
+def renderer_of(backend: str) -> str:
+  """The renderer that draws a backend's camera images (they differ pixel by pixel)."""
+  from envs import batched, mujoco_batch
+  return mujoco_batch.RENDERER if envs.resolve_backend(backend) == "mujoco" else batched.RENDERER
+
+
 def _config_dict(cfg: DemoConfig) -> dict:
   d = dataclasses.asdict(cfg)
+  d["backend"] = envs.resolve_backend(cfg.backend)
   d["image_size"] = list(cfg.image_size)
   return d
 
@@ -120,8 +129,8 @@ def _config_dict(cfg: DemoConfig) -> dict:
 def _generate_task(cfg: DemoConfig, task: str, bar) -> tuple[list[Episode], dict]:
   """Run seeded expert batches until `cfg.demos` episodes succeed."""
   benv = envs.make(task, num_envs=min(cfg.batch, cfg.demos), render=cfg.images,
-                   image_size=cfg.image_size, impl=cfg.impl)
-  kept, indices, attempts, nans, t0 = [], [], 0, 0, time.time()
+                   image_size=cfg.image_size, backend=cfg.backend)
+  kept, indices, attempts, successes, nans, t0 = [], [], 0, 0, 0, time.time()
   overflow = []
   max_attempts = 3 * cfg.demos + 2 * benv.num_envs
   while len(kept) < cfg.demos:
@@ -132,6 +141,7 @@ def _generate_task(cfg: DemoConfig, task: str, bar) -> tuple[list[Episode], dict
     keys = rollout.reset_keys(cfg.seed, benv.num_envs, offset=attempts)
     for b, ep in enumerate(record_expert(benv, keys)):
       nans += ep.nan
+      successes += ep.success
       overflow.append(ep.overflow)
       if ep.success and len(kept) < cfg.demos:
         kept.append(ep)
@@ -140,7 +150,7 @@ def _generate_task(cfg: DemoConfig, task: str, bar) -> tuple[list[Episode], dict
     attempts += benv.num_envs
   wall = time.time() - t0
   info = dict(reset_index=np.asarray(indices, np.int64), attempts=attempts, kept=len(kept),
-              expert_success_rate=len(kept) / attempts if attempts else 0.0, nan_episodes=nans,
+              expert_success_rate=successes / attempts if attempts else 0.0, nan_episodes=nans,
               **{f"{k}_limit_episodes": v for k, v in envs.env.solver_limit_counts(overflow).items()},
               wall_s=round(wall, 2), mean_length=float(np.mean([len(e.action) for e in kept])))
   return kept, info

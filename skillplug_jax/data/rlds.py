@@ -30,7 +30,7 @@ from skillplug_jax.data.recording import Episode
 ACTION_DIM = envs.robot.ACTION_DIM
 # 2.0.0: episodes run until the completion predicate has held for 0.5 s (through
 # the release); 1.0.0 episodes were cut at the first step a looser check passed.
-FORMAT_VERSION = "2.0.0"
+FORMAT_VERSION = "3.0.0"
 BUILDER_NAME = "skillplug_demos"
 
 
@@ -112,7 +112,8 @@ class _Builder(tfds.core.GeneratorBasedBuilder):
   VERSION = tfds.core.Version(FORMAT_VERSION)
   _checksums_path = None  # nothing is downloaded (and the lookup needs importlib_resources)
   RELEASE_NOTES = {"1.0.0": "Scripted-expert demonstrations, RLDS layout.",
-                   FORMAT_VERSION: "Episodes recorded until success is declared (completion held 0.5 s)."}
+                   "2.0.0": "Episodes recorded until success is declared (completion held 0.5 s).",
+                   FORMAT_VERSION: "Physics backend and renderer recorded; contact impratio 1 (was 10)."}
 
   def __init__(self, *, spec: DatasetSpec, records: Callable[[], Iterable[EpisodeRecord]],
                metadata: dict, **kwargs):
@@ -240,8 +241,8 @@ def regenerate_advice(path: Path, metadata) -> str:
   elif size[0] == size[1]:
     args.append(f"--image-size {size[0]}")
   args.append(f"--seed {cfg['seed']}")
-  if cfg.get("impl", "warp") != "warp":
-    args.append(f"--impl {cfg['impl']}")
+  if cfg.get("backend"):
+    args.append(f"--backend {cfg['backend']}")
   args.append(f"--out {path.parent}")
   return (f"Delete {path} and generate it again: `skillplug demos {' '.join(args)}` "
           "(`skillplug pretrain` also regenerates a missing dataset)")

@@ -16,7 +16,7 @@ import jax
 import jax.numpy as jnp
 
 import envs
-from skillplug_jax.evaluate.rollout import Controller
+from envs.rollout import Controller
 from skillplug_jax.model.config import ModelConfig
 from skillplug_jax.model.policy import Policy
 

@@ -20,10 +20,11 @@ from tqdm import tqdm
 
 import envs
 from envs import rollout as env_rollout
+from envs.rollout import Controller, EpisodeResults, local_devices_for, run_episodes
 from envs.env import SOLVER_LIMIT_BITS, solver_limit_counts
+from skillplug_jax.data.demos import renderer_of
 from skillplug_jax.evaluate import groups, tables
 from skillplug_jax.evaluate.policy_controller import load_controller
-from skillplug_jax.evaluate.rollout import Controller, EpisodeResults, evaluate, local_devices_for
 
 EVAL_SEED = 1000
 VIDEO_SIZE = (128, 128)  # (H, W) of side-camera videos of state-based policies (image policies: their own size)
@@ -35,7 +36,7 @@ def trial_keys(seed: int, trials: int) -> jax.Array:
 
 def evaluate_task(task: str, controller: Controller, trials: int, seed: int = EVAL_SEED, batch: int = 50,
                   render: bool = False, image_size=(64, 64), videos: int = 0,  # image_size: (H, W)
-                  video_dir: str | Path | None = None) -> dict:
+                  video_dir: str | Path | None = None, backend: str = "auto") -> dict:
   """Success rate and query counts of one controller on one task.
 
   Besides the means, `trial_success` and `trial_queries` keep trial i's
@@ -46,11 +47,13 @@ def evaluate_task(task: str, controller: Controller, trials: int, seed: int = EV
   `rollout.local_devices_for`). videos > 0 writes the side
   camera of the first `videos` trials to `video_dir/<task>_trialNN.gif`.
   """
-  devices = local_devices_for(min(batch, trials), render=render or videos > 0)
+  backend = envs.resolve_backend(backend)
+  devices = local_devices_for(min(batch, trials), render=render or videos > 0, backend=backend)
   ndev = 1 if devices is None else len(devices)
   per_device = -(-min(batch, trials) // ndev)
   n_env = per_device * ndev
-  benv = envs.make(task, num_envs=per_device, render=render, image_size=image_size, devices=devices)
+  benv = envs.make(task, num_envs=per_device, render=render, image_size=image_size, devices=devices,
+                   backend=backend)
   keys = trial_keys(seed, trials)
   parts: list[EpisodeResults] = []
   for start in range(0, trials, n_env):
@@ -60,16 +63,17 @@ def evaluate_task(task: str, controller: Controller, trials: int, seed: int = EV
     frames = min(videos, per_device) if start == 0 else 0
     if frames:  # the first batch again with the side camera on (a state policy renders nothing)
       video_env = benv if render else envs.make(task, num_envs=per_device, render=True, image_size=VIDEO_SIZE,
-                                                devices=devices)
-      parts.append(evaluate(video_env, controller, k, devices, frames=frames))
+                                                devices=devices, backend=backend)
+      parts.append(run_episodes(video_env, controller, k, devices, frames=frames))
       _write_videos(parts[-1].frames, Path(video_dir or "."), task)
     else:
-      parts.append(evaluate(benv, controller, k, devices))
+      parts.append(run_episodes(benv, controller, k, devices))
   take = lambda f: np.concatenate([getattr(p, f) for p in parts])[:trials]  # noqa: E731
   success, nan, queries = take("success"), take("nan"), take("queries")
   overflow = take("overflow") if all(p.overflow is not None for p in parts) else np.zeros(trials, np.int32)
   routing = [p.routing for p in parts if p.routing is not None]
-  return dict(task=task, abbr=benv.env.abbr, trials=trials, seed=seed, devices=ndev,
+  return dict(task=task, abbr=benv.env.abbr, trials=trials, seed=seed, devices=ndev, backend=backend,
+              renderer=benv.renderer,
               success_rate=float(success.mean()), successes=int(success.sum()),
               nan_episodes=int(nan.sum()), solver_limit_episodes=solver_limit_counts(overflow),
               mean_queries_success=float(queries[success].mean()) if success.any() else None,
@@ -91,7 +95,7 @@ def _write_videos(frames: list, out: Path, task: str, fps: int = 20) -> None:
 
 def evaluate_runs(run_dirs: Sequence[str | Path], tasks: Sequence[str], trials: int, seed: int = EVAL_SEED,
                   batch: int = 50, query_every: int = 1, progress: bool = True, videos: int = 0,
-                  video_dir: str | Path = "videos") -> dict:
+                  video_dir: str | Path = "videos", backend: str = "auto") -> dict:
   """Every run on every task, and the tables (`tables.summarise`).
 
   Runs whose training configurations differ only in the seed (and where
@@ -102,6 +106,9 @@ def evaluate_runs(run_dirs: Sequence[str | Path], tasks: Sequence[str], trials: 
   results = []
   # Every run is loaded first: a missing or damaged checkpoint fails before any evaluation.
   loaded = [(run, *load_controller(run, query_every=query_every)) for run in run_dirs]
+  backend = envs.resolve_backend(backend)
+  for run, _, cfg in loaded:
+    warn_if_other_renderer(run, cfg, backend)
   bar = tqdm(total=len(run_dirs) * len(tasks), desc="eval", unit="task", file=sys.stderr,
              disable=not progress)
   for run, controller, cfg in loaded:
@@ -110,20 +117,34 @@ def evaluate_runs(run_dirs: Sequence[str | Path], tasks: Sequence[str], trials: 
       bar.set_postfix_str(f"{label} seed {cfg.seed} {task}")
       t0 = time.time()
       r = evaluate_task(task, controller, trials, seed, batch, render=cfg.model.use_images,
-                        image_size=cfg.model.image_size, videos=videos, video_dir=Path(video_dir) / Path(run).name)
+                        image_size=cfg.model.image_size, videos=videos, video_dir=Path(video_dir) / Path(run).name,
+                        backend=backend)
       r.update(run=str(run), policy=label, train_seed=cfg.seed, preset=cfg.preset, config=groups.training_key(cfg),
+               trained_on=cfg.backend,
                wall_s=round(time.time() - t0, 1))
       results.append(r)
       bar.update(1)
   bar.close()
   return dict(trials=trials, seed=seed, query_every=query_every, device=str(jax.devices()[0]),
-              results=results, **tables.summarise(results, tasks))
+              backend=backend, results=results, **tables.summarise(results, tasks))
+
+
+def warn_if_other_renderer(run, cfg, backend: str) -> None:
+  """An image policy sees another renderer's pixels when evaluated on another backend:
+  MuJoCo Warp's ray caster and OpenGL draw the same scene differently."""
+  if not cfg.model.use_images:
+    return
+  trained, now = renderer_of(cfg.backend), renderer_of(backend)
+  if trained != now:
+    print(f"WARNING: {run} is an image policy trained on {trained} images ({cfg.backend} backend) and is "
+          f"evaluated on {now} images ({backend} backend); the renderers draw different pixels, so its "
+          f"success rates measure transfer between renderers too", file=sys.stderr)
 
 
 def solver_limit_summary(results: Sequence[dict]) -> str:
-  """One line for a whole run: how many episodes hit MuJoCo Warp's solver or line-search limit."""
+  """One line for a whole run: how many episodes hit the solver's or its line search's limit."""
   total = sum(r["trials"] for r in results)
   hit = {k: sum(r["solver_limit_episodes"][k] for r in results) for k in SOLVER_LIMIT_BITS}
-  return (f"MuJoCo Warp's solver stopped at its iteration limit in {hit['solver_iterations']} and its "
-          f"line search in {hit['linesearch_iterations']} of {total} episodes (per task in the JSON; "
-          "the per-step warning is silenced)")
+  return (f"The constraint solver stopped at its iteration limit in {hit['solver_iterations']} and its "
+          f"line search (MuJoCo Warp only) in {hit['linesearch_iterations']} of {total} episodes "
+          "(per task in the JSON)")

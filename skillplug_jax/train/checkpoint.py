@@ -8,7 +8,8 @@ Orbax writes each checkpoint into a temporary directory and renames it when
 complete, so a run killed mid-save keeps its previous checkpoint. A checkpoint
 damaged afterwards (a truncated copy, a full disk, a bad sector) raises
 DamagedCheckpoint naming its directory; a resumed training run then falls back
-to the newest intact one (`restore_latest(..., fallback=True)`).
+to the newest intact one (`restore_latest(..., fallback=True)`). Evaluation
+reads only the latest checkpoint's parameters (`restore_params`).
 """
 
 from __future__ import annotations
@@ -48,8 +49,15 @@ class DamagedCheckpoint(CheckpointError):
     return type(self), (self.path, self.reason, self.advice)
 
 
-def manager(run_dir: Path, keep: int = 2) -> ocp.CheckpointManager:
-  # The item handler lets `restore` read a checkpoint's tree metadata before its arrays.
+def manager(run_dir: Path, keep: int = 2, params_only: bool = False) -> ocp.CheckpointManager:
+  """The run's checkpoints. The item handler lets `restore` read a checkpoint's tree
+  metadata before its arrays. `params_only`: a manager for `restore(..., params_only=True)`,
+  which only reads: StandardCheckpointHandler cannot restore part of a tree, the
+  PyTreeCheckpointHandler it wraps (the same files) can."""
+  if params_only:
+    return ocp.CheckpointManager((Path(run_dir) / "checkpoints").absolute(),
+                                 options=ocp.CheckpointManagerOptions(create=False),
+                                 item_handlers=ocp.PyTreeCheckpointHandler())
   return ocp.CheckpointManager(
       (Path(run_dir) / "checkpoints").absolute(),
       options=ocp.CheckpointManagerOptions(max_to_keep=keep, create=True),
@@ -64,28 +72,40 @@ def step_dir(mngr: ocp.CheckpointManager, step: int) -> Path:
   return Path(mngr.directory) / str(step)
 
 
-def restore(mngr: ocp.CheckpointManager, step: int, like):
+def restore(mngr: ocp.CheckpointManager, step: int, like, params_only: bool = False):
   """Restore into the structure, shapes and shardings of `like`.
 
   Raises CheckpointError when the checkpoint holds another model, and
   DamagedCheckpoint when its files cannot be read: the stored tree metadata
   is compared with `like` first, so a failure after that is the files' fault.
+  params_only: `like` is the `params` subtree alone and only it is read (the
+  optimiser state is not), with a `manager(..., params_only=True)`; leaves of
+  `like` without a sharding go to the default device.
   """
   path = step_dir(mngr, step)
   abstract = jax.tree.map(ocp.utils.to_shape_dtype_struct, like)
+  if params_only:
+    device = jax.sharding.SingleDeviceSharding(jax.devices()[0])
+    abstract = {"params": jax.tree.map(lambda x: x.update(sharding=x.sharding or device), abstract)}
   check_index(path)
   try:
     stored = mngr.item_metadata(step)
   except Exception:  # noqa: BLE001  unreadable tree metadata: the restore below says what is wrong
     stored = None
+  if params_only and stored is not None:
+    stored = {"params": stored.get("params", {})}
   misfit = "" if stored is None else tree_misfit(abstract, stored)
   if misfit:
     raise CheckpointError(f"checkpoint {path} does not fit this model: {misfit}")
+  args = (ocp.args.PyTreeRestore(abstract, ocp.checkpoint_utils.construct_restore_args(abstract),
+                                 partial_restore=True) if params_only
+          else ocp.args.StandardRestore(abstract))
   try:
-    return mngr.restore(step, args=ocp.args.StandardRestore(abstract))
+    state = mngr.restore(step, args=args)
   except Exception as e:  # noqa: BLE001  orbax wraps TensorStore read errors in a bare Exception
     _raise_if_read_error(path, e)
     raise
+  return state["params"] if params_only else state
 
 
 def _raise_if_read_error(path: Path, e: Exception) -> None:
@@ -95,8 +115,8 @@ def _raise_if_read_error(path: Path, e: Exception) -> None:
     raise DamagedCheckpoint(path, short_reason(e)) from e
 
 
-def restore_latest(mngr: ocp.CheckpointManager, like, fallback: bool = False):
-  """(state, step, damaged) of the newest checkpoint that restores.
+def restore_latest(mngr: ocp.CheckpointManager, like, fallback: bool = False, params_only: bool = False):
+  """(state, step, damaged) of the newest checkpoint that restores (`params_only`: see `restore`).
 
   Without `fallback` a damaged newest checkpoint raises DamagedCheckpoint
   (evaluating an older one silently would mislabel results); with it, older
@@ -109,7 +129,7 @@ def restore_latest(mngr: ocp.CheckpointManager, like, fallback: bool = False):
   damaged: list[DamagedCheckpoint] = []
   for i, step in enumerate(steps):
     try:
-      return restore(mngr, step, like), step, damaged
+      return restore(mngr, step, like, params_only), step, damaged
     except DamagedCheckpoint as e:
       if not fallback:
         older = steps[i + 1] if i + 1 < len(steps) else None
@@ -122,6 +142,18 @@ def restore_latest(mngr: ocp.CheckpointManager, like, fallback: bool = False):
       f"no intact checkpoint in {mngr.directory}: "
       + "; ".join(f"{e.path.name} is damaged ({e.reason})" for e in damaged)
       + f". Delete {mngr.directory} to train from the start")
+
+
+def restore_params(run_dir: Path, like_params):
+  """(params, step) of a run's latest checkpoint, for evaluation: shapes checked against
+  `like_params`, the optimiser state not read, and no fallback to an older checkpoint
+  (a damaged latest one raises DamagedCheckpoint naming it)."""
+  mngr = manager(run_dir, params_only=True)
+  try:
+    params, step, _ = restore_latest(mngr, like_params, params_only=True)
+  finally:
+    mngr.close()
+  return params, step
 
 
 def set_aside(mngr: ocp.CheckpointManager, damaged: DamagedCheckpoint, run_dir: Path) -> Path:

@@ -26,6 +26,7 @@ class TrainConfig:
   demos: int = 300  # per task; images follow model.use_images and model.image_size
   data_seed: int = 0
   data_dir: str = "results/datasets"
+  backend: str = "auto"  # physics of the demonstrations (envs.BACKENDS); a run records the resolved one
   # optimisation (ACT: AdamW, lr 1e-5 backbone / 1e-4 rest, weight decay 1e-4)
   batch_size: int = 16
   lr: float = 1e-4

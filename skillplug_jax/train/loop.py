@@ -49,7 +49,8 @@ class TrainingError(RuntimeError):
 
 def dataset_config(cfg: TrainConfig) -> demo_data.DemoConfig:
   return demo_data.DemoConfig(taskset=cfg.data_taskset or cfg.taskset, demos=cfg.demos,
-                              images=cfg.model.use_images, image_size=cfg.model.image_size, seed=cfg.data_seed)
+                              images=cfg.model.use_images, image_size=cfg.model.image_size, seed=cfg.data_seed,
+                              backend=cfg.backend)
 
 
 def load_data(cfg: TrainConfig, generate: bool = True, progress: bool = True) -> data_loader.Demonstrations:
@@ -115,18 +116,17 @@ def make_train_step(cfg: TrainConfig, tx: optax.GradientTransformation, key: jax
 
 
 def load_params(run_dir: str | Path, like=None):
-  """Parameters of a run's latest checkpoint (shapes checked against `like` if given)."""
+  """(cfg, params, step) of a run's latest checkpoint (shapes checked against `like` if given).
+
+  Only the parameters are read (no optimiser is built), and a damaged latest
+  checkpoint is an error that names it, not an older result.
+  """
   run_dir = Path(run_dir)
   cfg = checkpoint.read_config(run_dir)
-  params = init_params(cfg, jax.random.PRNGKey(0)) if like is None else like
-  tx = optimizer(cfg, params)
-  target = TrainState(jnp.zeros((), jnp.int32), params, tx.init(params))
-  mngr = checkpoint.manager(run_dir)
-  try:  # no fallback: a damaged latest checkpoint is an error that names it, not an older result
-    state, _, _ = checkpoint.restore_latest(mngr, target)
-  finally:
-    mngr.close()
-  return cfg, state.params, int(state.step)
+  if like is None:
+    like = jax.eval_shape(lambda: init_params(cfg, jax.random.PRNGKey(0)))
+  params, step = checkpoint.restore_params(run_dir, like)
+  return cfg, params, step
 
 
 def train(cfg: TrainConfig, progress: bool = True, stop_after: int | None = None) -> Path:
@@ -135,6 +135,7 @@ def train(cfg: TrainConfig, progress: bool = True, stop_after: int | None = None
   stop_after: return after this many steps of this call, as a kill would
   (tests use it to check that resuming is exact).
   """
+  cfg = dataclasses.replace(cfg, backend=envs.resolve_backend(cfg.backend))
   run_dir = cfg.run_dir
   data = load_data(cfg, progress=progress)
   if cfg.init_from:  # the frozen encoder expects the inputs normalised as in its own training

@@ -1,0 +1,259 @@
+"""The CPU backend: a batch of environments on MuJoCo's C engine (`mujoco.batch`).
+
+Same API as `envs.batched.BatchedEnv` (reset(keys[B]) and step(state,
+actions[B, 7]) return a batched Brax `State` with the same observations,
+metrics, `done` and bookkeeping). The physics runs in C on a thread pool,
+outside JAX; everything else is the task's own JAX code, jitted over the
+batch: the reset sampler gives qpos, and the success predicate, observations
+and episode bookkeeping (`TabletopEnv.next_state`, under Brax's own episode
+and vmap wrappers) read the arrays the engine returns, as a `PhysicsState`
+whose fields have mjx.Data's names. Episodes that have ended are not
+simulated further.
+
+The C batch holds the simulations' state, so `step` must be given the State
+the previous `reset` or `step` returned.
+
+Failure isolation: MuJoCo answers an unstable state (NaN or huge values in
+qpos, qvel or qacc) with a warning and by resetting that simulation to the
+model's defaults, which sets its clock to 0. Each simulation's clock starts at
+`CLOCK_START`, so a reset shows as a clock behind the steps taken; that
+episode, and one whose state is not finite, fails alone and keeps its last
+good state, as a NaN does on MJX-Warp.
+"""
+
+from __future__ import annotations
+
+import copy
+import queue
+import threading
+
+import jax
+import jax.numpy as jnp
+import mujoco
+import numpy as np
+from brax.envs.base import Env, State
+from brax.envs.wrappers.training import EpisodeWrapper, VmapWrapper
+from flax import struct
+from mujoco import batch as mj_batch
+
+from envs.env import SOLVER_LIMIT_BITS, TabletopEnv, clipped_ctrl
+
+CAMERAS = ("side", "wrist")
+RENDERER = "mujoco-opengl"  # what datasets and runs record (MJX-Warp's is "warp-raycast")
+# The integration state saved before each step, restored where a step fails.
+SAVED_FIELDS = ("qpos", "qvel", "act", "ctrl", "qacc_warmstart", "time")
+DERIVED_FIELDS = ("xpos", "xquat", "xmat", "site_xpos", "geom_xpos", "sensordata")
+CLOCK_START = 1.0  # s; MuJoCo's reset of an unstable simulation sets it to 0
+
+
+@struct.dataclass
+class PhysicsState:
+  """What task logic reads of the physics, as float32 arrays named as in mjx.Data."""
+  qpos: jax.Array
+  qvel: jax.Array
+  xpos: jax.Array
+  xquat: jax.Array
+  xmat: jax.Array  # [nbody, 3, 3]
+  site_xpos: jax.Array
+  geom_xpos: jax.Array
+  sensordata: jax.Array
+  time: jax.Array  # s since the reset
+  overflow: jax.Array  # int32: SOLVER_LIMIT_BITS seen (the solver at its iteration limit)
+
+  def where(self, cond, other: "PhysicsState") -> "PhysicsState":
+    """`other` where `cond`, as mjx.Data.where."""
+    return jax.tree.map(lambda mine, theirs: jnp.where(cond, theirs, mine), self, other)
+
+  @property
+  def shape(self):
+    """Brax's EpisodeWrapper sizes its counters by its reset argument's
+    shape[:-1], written for a PRNG key; a single environment's state is a
+    scalar to it."""
+    return self.qpos.shape[:-1] + (2,)
+
+
+class _Bookkeeping(Env):
+  """A task's State bookkeeping as a Brax Env whose 'action' is the physics'
+  result, so that Brax's episode and vmap wrappers apply unchanged."""
+
+  def __init__(self, env: TabletopEnv):
+    self.env = env
+
+  def reset(self, physics) -> State:
+    return self.env.first_state(physics)
+
+  def step(self, state: State, result) -> State:
+    physics, failed, keep = result
+    return self.env.next_state(state, physics, failed, keep)
+
+  @property
+  def observation_size(self):
+    return self.env.observation_size
+
+  @property
+  def action_size(self) -> int:
+    return self.env.action_size
+
+  @property
+  def backend(self) -> str:
+    return self.env.backend
+
+
+class MujocoBatchEnv:
+  """`num_envs` copies of a task on MuJoCo's C engine, stepped on `nthread` threads (0: every core).
+
+  With `render=True`, obs also holds `side_rgb` and `wrist_rgb` (uint8,
+  [B, H, W, 3]) drawn by `mujoco.Renderer` (OpenGL; EGL offscreen where
+  MUJOCO_GL=egl), one renderer per worker thread.
+  """
+
+  backend = "mujoco"
+  devices = None
+
+  def __init__(self, env: TabletopEnv, num_envs: int, render: bool = False, image_size=(64, 64),
+               nthread: int = 0):
+    if env.config.backend != "mujoco":
+      raise ValueError(f"MujocoBatchEnv needs an environment made for the 'mujoco' backend, "
+                       f"not {env.config.backend!r}")
+    self.env = env
+    self.num_envs = num_envs
+    self.render = render
+    self.image_size = tuple(image_size)
+    self.renderer = RENDERER if render else None
+    self._batch = mj_batch.Batch(env.mj_model, nsim=num_envs, nthread=nthread)
+    self._saved = {f: self._batch.bind(f) for f in SAVED_FIELDS}
+    self._derived = {f: self._batch.bind(f) for f in DERIVED_FIELDS + ("solver_niter",)}
+    self._nbody = env.mj_model.nbody
+    self._max_iter = env.mj_model.opt.iterations
+    self._step_s = env.n_substeps * env.mj_model.opt.timestep
+    wrapped = VmapWrapper(EpisodeWrapper(_Bookkeeping(env), env.episode_length, action_repeat=1))
+    self._first = jax.jit(wrapped.reset)
+    self._next = jax.jit(wrapped.step)
+    self._initial = jax.jit(jax.vmap(env.initial_qpos))
+    self._ctrl = jax.jit(clipped_ctrl)
+    self._cameras = CameraRenderer(env.mj_model, self.image_size, self._batch.nthread) if render else None
+    self._images = None
+
+  @property
+  def episode_length(self) -> int:
+    return self.env.episode_length
+
+  def reset(self, keys: jax.Array) -> State:
+    if keys.shape[0] != self.num_envs:
+      raise ValueError(f"got {keys.shape[0]} reset keys for {self.num_envs} environments")
+    qpos, ctrl = jax.device_get(self._initial(keys))
+    self._batch.reset(stage=mujoco.mjtStage.mjSTAGE_NONE)
+    self._saved["qpos"][:] = qpos
+    self._saved["ctrl"][:] = ctrl
+    self._saved["time"][:] = CLOCK_START
+    self._batch.forward()
+    state = self._first(self._physics(np.zeros(self.num_envs, np.int32)))
+    return self._with_images(state, np.arange(self.num_envs))
+
+  def step(self, state: State, actions: jax.Array) -> State:
+    if actions.shape != (self.num_envs, self.env.action_size):
+      raise ValueError(
+          f"{self.env.name}: actions have shape {actions.shape}, expected "
+          f"({self.num_envs}, {self.env.action_size})")
+    alive = np.asarray(state.done) == 0
+    ids = np.flatnonzero(alive)
+    saved = {f: a.copy() for f, a in self._saved.items()}
+    ctrl = np.asarray(self._ctrl(jnp.asarray(actions)), np.float64)
+    self._saved["ctrl"][ids] = ctrl[ids]
+    if ids.size:
+      self._batch.step(ids=ids, nstep=self.env.n_substeps)
+    q, v, clock = self._saved["qpos"], self._saved["qvel"], self._saved["time"]
+    finite = np.isfinite(q).all(1) & np.isfinite(v).all(1)
+    failed = alive & (~finite | (clock < saved["time"] + self._step_s - 1e-6))
+    if failed.any():  # keep the last good state of those simulations
+      for f, a in self._saved.items():
+        a[failed] = saved[f][failed]
+    limit = (self._derived["solver_niter"].reshape(self.num_envs, -1).max(1) >= self._max_iter) & alive
+    overflow = np.where(limit, SOLVER_LIMIT_BITS["solver_iterations"], 0).astype(np.int32)
+    obs = {k: v for k, v in state.obs.items() if not k.endswith("_rgb")}
+    state = self._next(state.replace(obs=obs),
+                       (self._physics(overflow), jnp.asarray(failed), jnp.asarray(~alive | failed)))
+    return self._with_images(state, ids[~failed[ids]])
+
+  def _physics(self, overflow: np.ndarray) -> PhysicsState:
+    f32 = {k: np.asarray(v, np.float32) for k, v in self._derived.items() if k != "solver_niter"}
+    return PhysicsState(qpos=self._saved["qpos"].astype(np.float32), qvel=self._saved["qvel"].astype(np.float32),
+                        time=(self._saved["time"] - CLOCK_START).astype(np.float32),
+                        xmat=f32.pop("xmat").reshape(self.num_envs, self._nbody, 3, 3),
+                        overflow=overflow, **f32)
+
+  def _with_images(self, state: State, ids: np.ndarray) -> State:
+    """Draw the simulations `ids` anew; the others keep their last images."""
+    if not self.render:
+      return state
+    self._images = self._cameras.render(self._saved["qpos"], ids, self._images)
+    return state.replace(obs={**state.obs, **{f"{c}_rgb": jnp.asarray(self._images[c]) for c in CAMERAS}})
+
+
+class CameraRenderer:
+  """Both cameras of a batch of states, drawn by `mujoco.Renderer` on worker threads.
+
+  An OpenGL context belongs to the thread that made it, so each worker thread
+  makes, uses and closes its own renderer; `close` (or garbage collection)
+  asks the workers to do so. The offscreen buffer is the image size, without
+  multisampling.
+  """
+
+  def __init__(self, model: mujoco.MjModel, image_size, nthread: int):
+    self._size = tuple(image_size)
+    render_model = _render_model(model, *self._size)
+    self._jobs = [queue.SimpleQueue() for _ in range(max(1, nthread))]
+    for jobs in self._jobs:  # the workers hold no reference to self, so it can be collected
+      threading.Thread(target=_render_worker, args=(render_model, self._size, jobs), daemon=True,
+                       name="mujoco-render").start()
+
+  def render(self, qpos: np.ndarray, ids: np.ndarray, out: dict | None = None) -> dict:
+    """Draw simulations `ids` (from their qpos rows) into `out` ({camera: [B, H, W, 3]})."""
+    if out is None:
+      out = {c: np.zeros((qpos.shape[0],) + self._size + (3,), np.uint8) for c in CAMERAS}
+    done = queue.SimpleQueue()
+    chunks = [c for c in np.array_split(ids, len(self._jobs)) if c.size]
+    for jobs, chunk in zip(self._jobs, chunks):
+      jobs.put((qpos, chunk, out, done))
+    errors = [e for e in (done.get() for _ in chunks) if e is not None]
+    if errors:
+      raise errors[0]
+    return out
+
+  def close(self) -> None:
+    for jobs in self._jobs:
+      jobs.put(None)
+    self._jobs = []
+
+  def __del__(self):
+    self.close()
+
+
+def _render_worker(model: mujoco.MjModel, size, jobs: queue.SimpleQueue) -> None:
+  renderer = mujoco.Renderer(model, *size)
+  data = mujoco.MjData(model)
+  cam_ids = [model.camera(c).id for c in CAMERAS]
+  try:
+    while (job := jobs.get()) is not None:
+      qpos, ids, out, done = job
+      try:
+        for i in ids:
+          data.qpos[:] = qpos[i]
+          mujoco.mj_kinematics(model, data)
+          mujoco.mj_camlight(model, data)
+          for cam, cid in zip(CAMERAS, cam_ids):
+            renderer.update_scene(data, cid)
+            out[cam][i] = renderer.render()
+        done.put(None)
+      except Exception as e:  # noqa: BLE001  handed to the caller's thread
+        done.put(e)
+  finally:
+    renderer.close()
+
+
+def _render_model(model: mujoco.MjModel, h: int, w: int) -> mujoco.MjModel:
+  """A copy of `model` whose offscreen buffer is the image size, without multisampling."""
+  m = copy.copy(model)
+  m.vis.global_.offwidth, m.vis.global_.offheight = w, h
+  m.vis.quality.offsamples = 0
+  return m
