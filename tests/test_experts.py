@@ -12,9 +12,11 @@ from skillplug_jax import cli
 
 EPISODES = 2  # seeded episodes per task: the 100-episode table is `make experts`
 # On a CPU each MJX-Warp task compiles its own episode loop (7-30 s per task,
-# about 165 s for all 11), so Warp runs the tasks whose physics differ most:
-# a grasp and lift, a three-block stack, an articulated drawer, a push.
-WARP_TASKS = ("jujube_pick", "stack_block", "drawer_open", "mouse_push")
+# about 165 s for all 11), so Warp runs a three-block stack and an articulated
+# drawer here; its grasp and lift (jujube_pick) is the expert run of
+# tests/test_evaluate.py's engine test. `skillplug experts --backend mjx-warp`
+# runs all 11 (README: 100% on each, 100 episodes).
+WARP_TASKS = ("stack_block", "drawer_open")
 
 CASES = ([pytest.param(name, "mujoco", id=f"{name}-mujoco") for name in envs.TASKS]
          + [pytest.param(name, "mjx-warp", id=f"{name}-mjx-warp") for name in WARP_TASKS])
@@ -34,8 +36,8 @@ def test_expert_succeeds_within_the_time_limit(name, backend):
 def test_no_task_is_done_by_a_robot_at_rest(name):
   """A robot holding its home pose for the whole time limit solves nothing: no
   lid that shuts itself, no object that starts on its target (laptop_close's lid
-  once crept shut in 39-46% of such episodes)."""
-  n = 24
+  once crept shut in 39 of 100 such episodes)."""
+  n = 12
   env = envs.make(name, num_envs=n, backend="mujoco")
   home = jnp.tile(jnp.asarray(robot.HOME_QPOS, jnp.float32), (n, 1))
   at_rest = rollout.Controller(lambda s: (), lambda w, cs, s, t: (home, cs, {}), name="at rest")
