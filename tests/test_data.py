@@ -288,6 +288,9 @@ def test_demos_generate_resume_and_reuse(tmp_path, monkeypatch):
   assert d.num_episodes == 2 and d.image_size is None
   meta = tfds.builder_from_directory(str(path)).info.metadata
   assert meta["per_task"]["jujube_pick"]["kept"] == 2
+  # the physics it came from is in its name and metadata (auto: the C engine on a CPU)
+  assert path.name.endswith("_mujoco") and meta["backend"] == "mujoco" and meta["renderer"] is None
+  assert meta["per_task"]["jujube_pick"]["expert_success_rate"] == 1.0
   assert 0 <= meta["per_task"]["jujube_pick"]["solver_iterations_limit_episodes"] <= 2  # counted, not printed
   assert not any(p.name.startswith(".") for p in tmp_path.iterdir())  # staging cleaned up
   # each kept episode is a success whose last step is terminal, and its

@@ -372,3 +372,17 @@ def test_eval_cli_expands_seed_templates_and_rejects_bad_ones(capsys):
   assert "comma-separated integers" in capsys.readouterr().err
   assert cli.main(["eval", "--ckpt", "r/missing_run", "--taskset", "jujube_pick"]) == 2
   assert "missing_run" in capsys.readouterr().err
+
+
+def test_an_image_policy_on_another_renderer_is_warned_about(capsys):
+  """MJX-Warp's ray caster and MuJoCo's OpenGL draw different pixels: evaluating
+  an image policy on the other backend says so; a state policy is not warned about."""
+  images = dataclasses.replace(model_config.quick(), use_images=True)
+  cfg = train_config.TrainConfig(preset="quick", model=images, backend="mjx-warp")
+  protocol.warn_if_other_renderer("runs/img", cfg, "mujoco")
+  err = capsys.readouterr().err
+  assert "WARNING: runs/img is an image policy trained on warp-raycast images" in err
+  assert "evaluated on mujoco-opengl images (mujoco backend)" in err
+  protocol.warn_if_other_renderer("runs/img", cfg, "mjx-warp")
+  protocol.warn_if_other_renderer("runs/state", dataclasses.replace(cfg, model=model_config.quick()), "mujoco")
+  assert capsys.readouterr().err == ""
