@@ -50,7 +50,7 @@ BACKENDS = ("auto", "mujoco", "mjx-warp")
 
 def resolve_backend(name: str) -> str:
   """'auto' is MJX-Warp when JAX sees a GPU and MuJoCo's C engine otherwise,
-  where it runs 50-150x faster than Warp on a CPU (README, benchmarks)."""
+  which on a CPU steps our tasks about 60x faster than Warp (README, benchmarks)."""
   if name not in BACKENDS:
     raise ValueError(f"unknown backend {name!r}; valid backends: {', '.join(BACKENDS)}")
   if name == "auto":
