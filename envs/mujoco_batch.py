@@ -106,6 +106,21 @@ class _Bookkeeping(Env):
     return self.env.backend
 
 
+_clipped_ctrl = jax.jit(clipped_ctrl)
+_BOOKKEEPING: dict = {}
+
+
+def _jitted_bookkeeping(env: TabletopEnv):
+  """(reset sampler, first State, next State), jitted over the batch. Shared by
+  every batch of the same task class and config, so that evaluating run after
+  run (a new environment batch per task and run) compiles them once."""
+  key = (type(env), env.config)
+  if key not in _BOOKKEEPING:
+    wrapped = VmapWrapper(EpisodeWrapper(_Bookkeeping(env), env.episode_length, action_repeat=1))
+    _BOOKKEEPING[key] = (jax.jit(jax.vmap(env.initial_qpos)), jax.jit(wrapped.reset), jax.jit(wrapped.step))
+  return _BOOKKEEPING[key]
+
+
 class MujocoBatchEnv:
   """`num_envs` copies of a task on MuJoCo's C engine, stepped on `nthread` threads (0: every core).
 
@@ -133,11 +148,8 @@ class MujocoBatchEnv:
     self._nbody = env.mj_model.nbody
     self._max_iter = env.mj_model.opt.iterations
     self._step_s = env.n_substeps * env.mj_model.opt.timestep
-    wrapped = VmapWrapper(EpisodeWrapper(_Bookkeeping(env), env.episode_length, action_repeat=1))
-    self._first = jax.jit(wrapped.reset)
-    self._next = jax.jit(wrapped.step)
-    self._initial = jax.jit(jax.vmap(env.initial_qpos))
-    self._ctrl = jax.jit(clipped_ctrl)
+    self._initial, self._first, self._next = _jitted_bookkeeping(env)
+    self._ctrl = _clipped_ctrl
     self._cameras = CameraRenderer(env.mj_model, self.image_size, self._batch.nthread) if render else None
     self._images = None
 
