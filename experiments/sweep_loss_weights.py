@@ -37,7 +37,8 @@ GRID = {"kl": (0.1, 10.0), "bsa": (0.01, 1.0), "sd": (0.01, 1.0)}
 def held_out(run_dir, val: data_loader.Demonstrations) -> dict:
   cfg, params, _ = loop.load_params(run_dir)
   val = dataclasses.replace(val, stats=json.loads((run_dir / "norm_stats.json").read_text()))
-  ld = data_loader.ChunkLoader(val, batch_size=1, chunk=cfg.model.chunk)
+  ld = data_loader.ChunkLoader(val, batch_size=1, chunk=cfg.model.chunk,
+                               normalize_object_state=cfg.model.normalize_object_state)
   ep = np.repeat(np.arange(val.num_episodes), val.length)
   t = np.concatenate([np.arange(n) for n in val.length])
   batch = {k: jnp.asarray(v) for k, v in ld.gather(ep, t).items()}

@@ -82,7 +82,7 @@ def test_chunk_padding_and_mask_at_episode_end(image_dataset):
   path, _ = image_dataset
   d = loader.load_demonstrations(path, images=True)
   chunk = 25
-  ld = loader.ChunkLoader(d, batch_size=4, chunk=chunk, seed=3, images=True)
+  ld = loader.ChunkLoader(d, batch_size=4, chunk=chunk, seed=3, images=True, normalize_object_state=False)
   mean = np.asarray(d.stats["action"]["mean"], np.float32)
   std = np.asarray(d.stats["action"]["std"], np.float32)
   checked_padding = False
@@ -103,6 +103,17 @@ def test_chunk_padding_and_mask_at_episode_end(image_dataset):
       assert batch["task_id"][row] == d.task_id[e]
       checked_padding |= valid < chunk
   assert checked_padding
+  # object state z-scored with the dataset's statistics when the model asks for it
+  o_mean, o_std = (np.asarray(d.stats["object_state"][k], np.float32) for k in ("mean", "std"))
+  normed = loader.ChunkLoader(d, batch_size=4, chunk=chunk, seed=3, images=True)  # the default
+  eps, ts = normed.indices(0)
+  want = (d.steps["object_state"][d.start[eps] + ts] - o_mean) / o_std
+  np.testing.assert_allclose(normed.numpy_batch(0)["object_state"], want, rtol=1e-5, atol=1e-5)
+  moving = np.asarray(d.stats["object_state"]["std"]) > normalization.MIN_STD
+  assert moving.any()
+  every = (d.steps["object_state"] - o_mean) / o_std
+  np.testing.assert_allclose(every.mean(0), 0.0, atol=1e-4)
+  np.testing.assert_allclose(every.std(0)[moving], 1.0, rtol=1e-3)
 
 
 def test_sampling_follows_act_epochs_and_is_deterministic(image_dataset):
@@ -248,13 +259,18 @@ def test_corrupt_statistics(image_dataset, tmp_path):
   assert normalization.read_stats(copy) == d.stats
   # recomputed from every step of every episode: mean, population std, min, max
   for key, steps in (("action", [r.episode.action for r in records]),
-                     ("joint_pos", [r.episode.observation["joint_pos"] for r in records])):
+                     ("joint_pos", [r.episode.observation["joint_pos"] for r in records]),
+                     ("object_state", [r.episode.observation["object_state"] for r in records])):
     x = np.concatenate(steps).astype(np.float64)
     mean = x.sum(0) / len(x)
     np.testing.assert_allclose(d.stats[key]["mean"], mean, rtol=1e-6, atol=1e-9)
     np.testing.assert_allclose(d.stats[key]["std"], np.sqrt(((x - mean) ** 2).sum(0) / len(x)), rtol=1e-6)
     np.testing.assert_array_equal(d.stats[key]["min"], x.min(0))
     np.testing.assert_array_equal(d.stats[key]["max"], x.max(0))
+  # a dataset from before object state was normalised: its statistics are made at load time
+  legacy = {k: v for k, v in d.stats.items() if k != "object_state"}
+  (copy / normalization.STATS_FILE).write_text(json.dumps(legacy))
+  assert loader.load_demonstrations(copy).stats == d.stats
   assert d.stats["num_steps"] == sum(len(r.episode.action) for r in records)
   # a joint the experts never move: its std is clipped to MIN_STD, not 0 (no division by zero)
   still = normalization.stats_of(np.tile([[0.5] * 6 + [1.0]], (4, 1)) + np.arange(4)[:, None] * np.eye(7)[0],

@@ -137,7 +137,8 @@ def _tiny_policy(policy="skillplug"):
   cfg = train_config.TrainConfig(preset="quick", model=m)
   params = loop.init_params(cfg, jax.random.PRNGKey(1))
   stats = {"action": {"mean": list(envs.robot.HOME_QPOS), "std": [0.01] * 7},
-           "joint_pos": {"mean": [0.0] * 7, "std": [1.0] * 7}}
+           "joint_pos": {"mean": [0.0] * 7, "std": [1.0] * 7},
+           "object_state": {"mean": [0.0] * envs.OBJECT_STATE_DIM, "std": [1.0] * envs.OBJECT_STATE_DIM}}
   return m, params, stats
 
 
@@ -175,21 +176,26 @@ class ObsOnly(NamedTuple):
   obs: dict  # what a learned policy's controller reads of the environment state
 
 
-def test_controller_unnormalises_the_chunk():
-  """The controller feeds the policy (joint_pos - mean) / std and sends the env
-  prediction * std + mean (hand-chosen statistics), step t of the chunk at step t,
-  the fixed routing's chunk when one is given."""
+def test_controller_normalises_inputs_and_unnormalises_the_chunk():
+  """The controller feeds the policy (x - mean) / std of the joint and (padded)
+  object state and sends the env prediction * std + mean (hand-chosen
+  statistics), step t of the chunk at step t, the fixed routing's chunk when
+  one is given."""
   m, params, _ = _tiny_policy()
+  assert m.normalize_object_state
   rng = np.random.default_rng(5)
   stats = {"action": {"mean": [0.1 * i - 0.2 for i in range(7)], "std": [0.5, 2.0, 0.1, 1.5, 3.0, 0.05, 0.7]},
-           "joint_pos": {"mean": [0.3] * 7, "std": [0.2, 0.5, 1.0, 2.0, 0.25, 4.0, 0.1]}}
+           "joint_pos": {"mean": [0.3] * 7, "std": [0.2, 0.5, 1.0, 2.0, 0.25, 4.0, 0.1]},
+           "object_state": {"mean": rng.normal(size=envs.OBJECT_STATE_DIM).tolist(),
+                            "std": rng.uniform(0.01, 0.2, size=envs.OBJECT_STATE_DIM).tolist()}}
   raw = {"joint_pos": jnp.asarray(rng.normal(size=(2, 7)), jnp.float32),
          "object_state": jnp.asarray(rng.normal(size=(2, 7)), jnp.float32)}  # a task's own width
   state = ObsOnly(raw)
   a_mean, a_std = (np.asarray(stats["action"][k], np.float32) for k in ("mean", "std"))
   j_mean, j_std = (np.asarray(stats["joint_pos"][k], np.float32) for k in ("mean", "std"))
+  o_mean, o_std = (np.asarray(stats["object_state"][k], np.float32) for k in ("mean", "std"))
   policy_input = {"joint_pos": (raw["joint_pos"] - j_mean) / j_std,
-                  "object_state": envs.padded_object_state(raw["object_state"])}
+                  "object_state": (envs.padded_object_state(raw["object_state"]) - o_mean) / o_std}
   sent = {}
   for routing in (None, (0.0, 0.0, 1.0)):
     pred, _ = Policy(m).apply({"params": params}, policy_input, routing, method=Policy.predict)
@@ -201,6 +207,16 @@ def test_controller_unnormalises_the_chunk():
       np.testing.assert_allclose(action, sent[routing][:, t], rtol=1e-5, atol=1e-5,
                                  err_msg=f"routing {routing}, step {t}")
   assert not np.allclose(sent[None], sent[(0.0, 0.0, 1.0)], atol=1e-3)  # the fixed skill is used
+  without = {k: v for k, v in stats.items() if k != "object_state"}
+  with pytest.raises(ValueError, match="no object_state entry"):
+    policy_controller(m, params, without)
+  # a run from before object state was normalised reads it raw, as it was trained
+  legacy = dataclasses.replace(m, normalize_object_state=False)
+  c = policy_controller(legacy, params, without, query_every=m.chunk)
+  action, _, _ = jax.jit(c.act)(c.weights, c.init(state), state, jnp.int32(0))
+  raw_input = dict(policy_input, object_state=envs.padded_object_state(raw["object_state"]))
+  pred, _ = Policy(legacy).apply({"params": params}, raw_input, method=Policy.predict)
+  np.testing.assert_allclose(action, np.asarray(pred)[:, 0] * a_std + a_mean, rtol=1e-5, atol=1e-5)
 
 
 def test_trials_are_paired_across_policies(monkeypatch):

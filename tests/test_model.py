@@ -17,14 +17,17 @@ import pytest
 
 import envs
 from skillplug_jax import losses
+from skillplug_jax.data import normalization
 from skillplug_jax.model import (GROUPS, ModelConfig, Policy, budget, masked_optimizer, paper,
                                  param_groups, quick, trainable_mask)
 from skillplug_jax.model.act import ActionHead, CVAEEncoder, Encoder, num_tokens
+from skillplug_jax.model.config import LEGACY_DEFAULTS
 from skillplug_jax.model.interactor import INTERACTORS
 from skillplug_jax.model.posterior import TrajectorySkillPosterior
 from skillplug_jax.model.resnet import ResNet18
 from skillplug_jax.model.router import Router
 from skillplug_jax.model.skills import SkillLibrary
+from skillplug_jax.model.transformer import DecoderLayer, TransformerEncoder
 
 FAST_COMPILE = {"xla_backend_optimization_level": 0, "xla_llvm_disable_expensive_passes": True}
 TINY = dict(hidden=32, heads=2, ff=64, enc_layers=1, dec_layers=2, cvae_enc_layers=1, chunk=6,
@@ -102,6 +105,95 @@ def test_presets_build_the_models_they_describe():
     dataclasses.replace(quick(), heads=3)
 
 
+# ---- how positions and object state enter (issue 12) --------------------------
+LEARNED_TABLES = {("encoder", "token_pos"), ("encoder", "state_pos"), ("encoder", "camera_embed"),
+                  ("cvae", "cls"), ("action_head", "queries")}
+
+
+@pytest.mark.parametrize("images", [False, True])
+def test_learned_tables_start_small(images):
+  """Positions, camera embeddings, decoder queries and the CVAE's CLS start at
+  N(0, 0.02): at torch's N(0, 1) they drowned the token contents and halved
+  closed-loop success (issue 12)."""
+  cfg = tiny(images=images, hidden=256)
+  assert cfg.embed_init_std == quick().embed_init_std == paper().embed_init_std == 0.02
+  assert cfg.positions == "input" and cfg.normalize_object_state
+  params = Policy(cfg).init(jax.random.key(0), make_batch(cfg))["params"]  # the real initialisers
+  found = 0
+  for (group, name) in LEARNED_TABLES:
+    if name in params[group]:
+      x = np.asarray(params[group][name])
+      assert 0.015 < x.std() < 0.025, (group, name, x.std())
+      found += 1
+  assert found == 4  # camera embeddings with images, else the state position
+
+
+def test_runs_from_before_issue_12_load_as_they_were_trained():
+  """A config.json written before these fields existed is the model it trained:
+  N(0, 1) tables in the contents, raw object state (so its checkpoints still
+  evaluate, and resuming it under the new defaults is refused by the diff)."""
+  from skillplug_jax.train import config as train_config
+  d = train_config.to_dict(train_config.preset("quick", "act"))
+  for k in LEGACY_DEFAULTS:
+    del d["model"][k]
+  old = train_config.from_dict(d).model
+  assert (old.positions, old.embed_init_std, old.normalize_object_state) == ("input", 1.0, False)
+  assert train_config.preset("quick", "act").model.normalize_object_state
+
+
+@pytest.mark.parametrize("memory", [False, True])
+def test_qk_positions_stay_out_of_the_contents(memory):
+  """'qk' (ACT's wiring): positions steer attention but never enter the values,
+  so tokens of equal content leave the encoder equal, and a decoder reading a
+  memory of equal tokens does not see the memory's positions. Added to the
+  contents ('input'), the same positions make the tokens differ."""
+  rng = np.random.default_rng(0)
+  n, d = 5, 32
+  same = jnp.asarray(np.tile(rng.normal(size=(1, 1, d)), (2, n, 1)), jnp.float32)
+  pos = jnp.asarray(rng.normal(size=(1, n, d)), jnp.float32)
+  if not memory:
+    for pre_norm in (True, False):
+      enc = TransformerEncoder(2, d, 2, 64, 0.0, pre_norm=pre_norm)
+      v = enc.init(jax.random.key(1), same, True, None, pos)
+      out = enc.apply(v, same, True, None, pos)
+      np.testing.assert_allclose(out, jnp.broadcast_to(out[:, :1], out.shape), atol=1e-5)
+      contents = enc.apply(v, same + pos, True)  # positions in the contents
+      assert np.abs(contents - contents[:, :1]).max() > 1e-2
+    return
+  queries = jnp.asarray(rng.normal(size=(2, 4, d)), jnp.float32)
+  layer = DecoderLayer(d, 2, 64, 0.0)
+  v = layer.init(jax.random.key(2), queries, same, True, None, pos)
+  out = layer.apply(v, queries, same, True, None, pos)
+  np.testing.assert_allclose(out, layer.apply(v, queries, same, True, None, 10 * pos), atol=1e-5)
+  assert np.abs(layer.apply(v, queries, same + pos, True) - out).max() > 1e-2
+
+
+def test_a_centimetre_moves_the_scene_tokens():
+  """At initialisation, moving one object 1 cm must change the encoder's scene
+  tokens by at least 1% of the difference between two unrelated scenes. The
+  wiring before issue 12 (raw object state beside N(0, 1) positions in the
+  contents) gives about 0.2%: the object was nearly invisible to the policy."""
+  rng = np.random.default_rng(3)
+  n = 16
+  scenes = 0.5 + 0.05 * rng.normal(size=(n, envs.OBJECT_STATE_DIM))  # metres, 5 cm spread
+  moved = scenes + 0.01 * np.eye(envs.OBJECT_STATE_DIM)[0]
+  stats = normalization.stats_of(np.zeros((n, 7)), np.zeros((n, 7)), scenes)
+  joint = jnp.asarray(rng.normal(size=(n, 7)), jnp.float32)
+
+  def change(cfg, seed):
+    enc, style = Encoder(cfg), jnp.zeros((n, cfg.latent_dim))
+    obs = lambda o: {"joint_pos": joint, "object_state": jnp.asarray(
+        normalization.normalize(o, stats, "object_state") if cfg.normalize_object_state else o, jnp.float32)}
+    v = enc.init(jax.random.key(seed), obs(scenes), style)
+    h, _ = enc.apply(v, obs(scenes), style)
+    h_moved, _ = enc.apply(v, obs(moved), style)
+    return float(jnp.linalg.norm(h_moved - h) / jnp.linalg.norm(jnp.roll(h, 1, axis=0) - h))
+
+  for seed in range(3):
+    assert change(quick(), seed) > 0.01
+    assert change(dataclasses.replace(quick(), **LEGACY_DEFAULTS), seed) < 0.005
+
+
 # ---- shapes of every module (eval_shape: no compile) --------------------------
 def test_resnet18_feature_map():
   for size, fmap in [((32, 32), (1, 1)), ((64, 64), (2, 2)), ((64, 96), (2, 3))]:
@@ -114,20 +206,25 @@ def test_resnet18_feature_map():
   assert sum(1 for k in params["params"] if "block" in k) == 8  # [2, 2, 2, 2]
 
 
+@pytest.mark.parametrize("positions", ["input", "qk"])
 @pytest.mark.parametrize("images", [False, True])
-def test_act_halves_shapes(images):
-  cfg = tiny(images=images)
+def test_act_halves_shapes(images, positions):
+  cfg = tiny(images=images, positions=positions)
   batch = make_batch(cfg)
   n = num_tokens(cfg)
   assert n == (2 + 2 * 1 * 1 if images else 3)
-  h = jax.eval_shape(lambda: Encoder(cfg).init_with_output(
+  h, pos = jax.eval_shape(lambda: Encoder(cfg).init_with_output(
       jax.random.key(0), batch, jnp.zeros((B, cfg.latent_dim)))[0])
   assert h.shape == (B, n, cfg.hidden)
+  if positions == "input":  # already in the contents
+    assert pos is None
+  else:
+    assert pos.shape == (1, n, cfg.hidden)
   mu, logvar = jax.eval_shape(lambda: CVAEEncoder(cfg).init_with_output(
       jax.random.key(0), batch["joint_pos"], batch["actions"], batch["action_mask"])[0])
   assert mu.shape == logvar.shape == (B, cfg.latent_dim)
   chunk = jax.eval_shape(lambda: ActionHead(cfg).init_with_output(
-      jax.random.key(0), jnp.zeros((B, n, cfg.hidden)))[0])
+      jax.random.key(0), jnp.zeros((B, n, cfg.hidden)), jnp.zeros((1, n, cfg.hidden)))[0])
   assert chunk.shape == (B, cfg.chunk, cfg.action_dim) and chunk.dtype == jnp.float32
 
 
@@ -190,9 +287,9 @@ def test_policy_shapes_and_groups(policy, images):
   assert shapes(val) == shapes(out)
   chunk, routing = jax.eval_shape(lambda v: model.apply(v, batch, method=Policy.predict), variables)
   assert chunk.shape == (B, cfg.chunk, cfg.action_dim)
-  h = jax.eval_shape(lambda v: model.apply(v, batch, method=Policy.encode), variables)
+  h, pos = jax.eval_shape(lambda v: model.apply(v, batch, method=Policy.encode), variables)
   assert h.shape == (B, num_tokens(cfg), cfg.hidden)
-  act = jax.eval_shape(lambda v, x: model.apply(v, x, method=Policy.act), variables, h)
+  act = jax.eval_shape(lambda v, x, p: model.apply(v, x, p, method=Policy.act), variables, h, pos)
   assert act.shape == chunk.shape
   assert (routing is None) == (policy == "act")
   if routing is not None:

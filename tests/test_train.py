@@ -115,6 +115,7 @@ def test_skillplug_fewshot_trains_router_and_head_on_source_statistics(data_dir,
   loop.train(few, progress=False)
   assert _changed_groups(source, few.run_dir) == {"router", "action_head"}
   source_stats = checkpoint.read_stats(source)
+  assert set(source_stats) >= {"action", "joint_pos", "object_state"}  # object state normalised too
   target_stats = normalization.read_stats(data_dir / state_dataset_name(TARGET))
   assert not np.allclose(target_stats["action"]["mean"], source_stats["action"]["mean"], atol=0.5)
   assert not np.allclose(target_stats["joint_pos"]["std"], source_stats["joint_pos"]["std"], atol=0.5)

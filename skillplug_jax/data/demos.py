@@ -101,12 +101,14 @@ def make_demos(cfg: DemoConfig, out: str | os.PathLike = "results/datasets", pro
                   renderer=renderer_of(cfg.backend) if cfg.images else None,
                   per_task={t: {k: v for k, v in s.items() if k != "reset_index"} for t, s in stats.items()})
   version_dir = rlds.write_dataset(building, cfg.spec, records, metadata)
-  actions, joints = [], []
-  for t in tasks:  # only the two arrays the statistics need, not the images
+  actions, joints, objects = [], [], []
+  for t in tasks:  # only the arrays the statistics need, not the images
     with np.load(staging / f"{t}.npz") as z:
       actions.append(z["action"])
       joints.append(z["obs/joint_pos"])
-  normalization.write_stats(version_dir, normalization.stats_of(np.concatenate(actions), np.concatenate(joints)))
+      objects.append(z["obs/object_state"])
+  normalization.write_stats(version_dir, normalization.stats_of(
+      np.concatenate(actions), np.concatenate(joints), np.concatenate(objects)))
   os.replace(version_dir, final)
   shutil.rmtree(building, ignore_errors=True)
   shutil.rmtree(staging, ignore_errors=True)

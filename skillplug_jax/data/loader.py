@@ -9,7 +9,8 @@ so any batch can be rebuilt from (seed, step) alone: a resumed run sees the
 batches a straight run would have seen, and fewer episodes than the batch
 size (few-shot: 10 demos, batch 16) still gives full batches.
 
-A sample is the observation at t, the normalised action chunk t..t+chunk-1
+A sample is the observation at t (joint state normalised, object state too
+unless the model reads it raw), the normalised action chunk t..t+chunk-1
 (zeros and `action_mask` False past the episode end), and the task id, for
 reporting only. The dataset is decoded once into flat numpy arrays (images
 too: 64x64 PNGs decode at load time, and a batch is then a gather); a thread
@@ -106,8 +107,10 @@ def load_demonstrations(path: str | Path, *, tasks: Sequence[str] | None = None,
   flat = {k: np.concatenate(v) for k, v in cols.items()}
   stats = normalization.read_stats(path)
   if stats is None:  # a dataset written elsewhere: compute once, keep beside it
-    stats = normalization.stats_of(flat["action"], flat["joint_pos"])
+    stats = normalization.stats_of(flat["action"], flat["joint_pos"], flat["object_state"])
     normalization.write_stats(path, stats)
+  elif "object_state" not in stats:  # written before object state was normalised: the loaded tasks'
+    stats = {**stats, "object_state": normalization.moments(flat["object_state"])}
   length = np.asarray(length, np.int64)
   order = np.argsort(ids, kind="stable")  # tfds shuffles records; sort for a fixed episode order
   starts = np.concatenate([[0], np.cumsum(length)[:-1]])
@@ -130,9 +133,13 @@ class ChunkLoader:
   """Batches of (observation at t, action chunk from t, mask, task id)."""
 
   def __init__(self, demos: Demonstrations, batch_size: int, chunk: int = 25, seed: int = 0,
-               images: bool = False, sharding: NamedSharding | None = None):
+               images: bool = False, sharding: NamedSharding | None = None,
+               normalize_object_state: bool = True):
     if images and demos.image_size is None:
       raise DatasetError("images requested but the demonstrations were loaded without images")
+    if normalize_object_state and "object_state" not in demos.stats:
+      raise DatasetError(f"{demos.path}: the statistics have no object_state entry to normalise with")
+    self.normalize_object_state = normalize_object_state
     self.demos, self.batch_size, self.chunk, self.seed, self.images = demos, batch_size, chunk, seed, images
     self.sharding = sharding or data_sharding()
     n_dev = self.sharding.mesh.size
@@ -184,7 +191,8 @@ class ChunkLoader:
     actions = normalization.normalize(d.steps["action"][idx], stats, "action")
     batch = {
         "joint_pos": normalization.normalize(d.steps["joint_pos"][row], stats, "joint_pos").astype(np.float32),
-        "object_state": d.steps["object_state"][row].astype(np.float32),
+        "object_state": (normalization.normalize(d.steps["object_state"][row], stats, "object_state")
+                         if self.normalize_object_state else d.steps["object_state"][row]).astype(np.float32),
         "actions": np.where(mask[..., None], actions, 0.0).astype(np.float32),
         "action_mask": mask,
         "task_id": d.task_id[ep].astype(np.int32),

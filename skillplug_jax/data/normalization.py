@@ -1,9 +1,13 @@
-"""Action and joint-position normalisation statistics, stored beside the dataset.
+"""Normalisation statistics of actions, joint and object state, stored beside the dataset.
 
 As in ACT: z-score with the standard deviation clipped from below, so a
 joint the experts never move (or the gripper in a push task) does not blow up.
 The statistics are computed once, when the dataset is written, and travel
-with checkpoints so a policy un-normalises its actions the same way.
+with checkpoints so a policy normalises its inputs and un-normalises its
+actions the same way. Object state (ACT's sim tasks had none) is normalised
+per padded dimension over every task of the dataset; `ModelConfig.
+normalize_object_state` says whether a policy reads it normalised. Datasets
+written before it was recorded get it computed at load time.
 """
 
 from __future__ import annotations
@@ -14,28 +18,35 @@ from typing import Iterable
 import numpy as np
 
 from skillplug_jax.atomic_json import read_json, write_json_atomic
+from envs import OBJECT_STATE_DIM
 from skillplug_jax.data import rlds
 
 STATS_FILE = "norm_stats.json"
 MIN_STD = 1e-2
 KEYS = ("action", "joint_pos")
+WIDTH = {"action": rlds.ACTION_DIM, "joint_pos": rlds.ACTION_DIM, "object_state": OBJECT_STATE_DIM}
 
 
 def compute_stats(episodes: Iterable) -> dict:
   """Mean and clipped std over every step of every episode (recording.Episode)."""
-  action, joint = [], []
+  action, joint, obj = [], [], []
   for ep in episodes:
     action.append(ep.action)
     joint.append(ep.observation["joint_pos"])
-  return stats_of(np.concatenate(action), np.concatenate(joint))
+    obj.append(ep.observation["object_state"])
+  return stats_of(np.concatenate(action), np.concatenate(joint), np.concatenate(obj))
 
 
-def stats_of(action: np.ndarray, joint_pos: np.ndarray) -> dict:
-  out = {}
-  for name, x in (("action", action), ("joint_pos", joint_pos)):
-    x = np.asarray(x, np.float64)
-    out[name] = {"mean": x.mean(0).tolist(), "std": np.maximum(x.std(0), MIN_STD).tolist(),
-                 "min": x.min(0).tolist(), "max": x.max(0).tolist()}
+def moments(x: np.ndarray) -> dict:
+  x = np.asarray(x, np.float64)
+  return {"mean": x.mean(0).tolist(), "std": np.maximum(x.std(0), MIN_STD).tolist(),
+          "min": x.min(0).tolist(), "max": x.max(0).tolist()}
+
+
+def stats_of(action: np.ndarray, joint_pos: np.ndarray, object_state: np.ndarray | None = None) -> dict:
+  out = {"action": moments(action), "joint_pos": moments(joint_pos)}
+  if object_state is not None:
+    out["object_state"] = moments(object_state)
   out["num_steps"] = int(len(action))
   return out
 
@@ -50,8 +61,8 @@ def read_stats(dataset_dir: str | Path) -> dict | None:
     return None
   try:
     stats = read_json(path)
-    for k in KEYS:
-      if len(stats[k]["mean"]) != rlds.ACTION_DIM or len(stats[k]["std"]) != rlds.ACTION_DIM:
+    for k in KEYS + tuple(k for k in ("object_state",) if k in stats):
+      if len(stats[k]["mean"]) != WIDTH[k] or len(stats[k]["std"]) != WIDTH[k]:
         raise ValueError(f"{k} statistics have the wrong length")
   except (ValueError, KeyError, TypeError) as e:
     raise rlds.DatasetError(f"{path} is corrupt ({e}); delete it to recompute") from e

@@ -48,9 +48,14 @@ def policy_controller(model: ModelConfig, params, stats: dict, *, query_every: i
     raise ValueError("temporal ensembling queries the policy every step (query_every=1)")
   fixed = None if routing is None else tuple(float(r) for r in routing)
   init, act = _controller_fns(model, query_every, temporal, ensemble_k, fixed)
+  inputs = ("action", "joint_pos") + (("object_state",) if model.normalize_object_state else ())
+  missing = [k for k in inputs if k not in stats]
+  if missing:
+    raise ValueError(f"the normalisation statistics have no {', '.join(missing)} entry "
+                     "(this model reads it normalised)")
   weights = {"params": params,
              "stats": {k: {s: jnp.asarray(stats[k][s], jnp.float32) for s in ("mean", "std")}
-                       for k in ("action", "joint_pos")}}
+                       for k in inputs}}
   return Controller(init, act, model.num_skills if model.is_skillplug else 0, name, weights)
 
 
@@ -66,6 +71,8 @@ def _controller_fns(model: ModelConfig, query_every: int, temporal: bool, ensemb
     obs, st = state.obs, weights["stats"]
     x = {"joint_pos": (obs["joint_pos"] - st["joint_pos"]["mean"]) / st["joint_pos"]["std"],
          "object_state": envs.padded_object_state(obs["object_state"])}
+    if model.normalize_object_state:
+      x["object_state"] = (x["object_state"] - st["object_state"]["mean"]) / st["object_state"]["std"]
     if model.use_images:
       for cam in model.cameras:
         x[f"{cam}_rgb"] = obs[f"{cam}_rgb"]

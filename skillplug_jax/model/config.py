@@ -12,6 +12,12 @@ from typing import Tuple
 import jax.numpy as jnp
 
 POLICIES = ("act", "skillplug")
+POSITIONS = ("input", "qk")
+
+# What a run recorded before a field existed meant: config.json files written
+# before issue 12 lack these keys and must load as the model they trained.
+LEGACY_DEFAULTS = dict(positions="input", embed_init_std=1.0, pre_norm=True,
+                       cvae_zero_init=True, normalize_object_state=False)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -38,6 +44,21 @@ class ModelConfig:
   # parameters, as in ACT's checkpoints). False uses the whole stack.
   decoder_first_layer_only: bool = False
   dropout: float = 0.1
+  # How positions and learned queries enter the transformer (act.py's
+  # docstring): 'input' adds them once to the token contents (ViT style);
+  # 'qk' adds them to the attention queries and keys of every layer and
+  # starts the decoder from zero contents, as ACT does.
+  positions: str = "input"
+  # Std of the learned tables (token and state positions, camera embeddings,
+  # decoder queries, the CVAE's CLS token). torch's nn.Embedding, which ACT
+  # uses, draws N(0, 1); 0.02 is BERT/ViT's.
+  embed_init_std: float = 0.02
+  pre_norm: bool = True  # False: ACT's post-norm layers (transformer.py)
+  cvae_zero_init: bool = True  # the CVAE's latent head starts at zero (act.py)
+  # Inputs: z-score the object state with the dataset's statistics, as the
+  # joint positions are (data/normalization.py). Read raw (metres, a few cm
+  # of spread), it cost ACT 30 points on jujube_pick (act.py).
+  normalize_object_state: bool = True
   latent_dim: int = 32  # ACT's CVAE style latent
   cvae_enc_layers: int = 4
   backbone_width: int = 64  # ResNet-18 stem width; stages are 1x, 2x, 4x, 8x
@@ -53,6 +74,8 @@ class ModelConfig:
   def __post_init__(self):
     if self.policy not in POLICIES:
       raise ValueError(f"policy must be one of {POLICIES}, got {self.policy!r}")
+    if self.positions not in POSITIONS:
+      raise ValueError(f"positions must be one of {POSITIONS}, got {self.positions!r}")
     if self.hidden % self.heads:
       raise ValueError(f"hidden ({self.hidden}) must be divisible by heads ({self.heads})")
     if self.decoder_first_layer_only and self.dec_layers < 1:

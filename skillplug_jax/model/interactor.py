@@ -1,9 +1,10 @@
 """Skill interactor: u_k = Interactor(h, s_k), one copy of the scene tokens per skill.
 
 Every interactor maps scene tokens h [B, N, D] and (per-sample) skill vectors
-s [B, K, D] to u [B, K, N, D]; `Policy` picks one by name from `INTERACTORS`
-(`ModelConfig.interactor`), so a new reading of the paper's "cross-attention"
-is a new class here and one dictionary entry.
+s [B, K, D] to u [B, K, N, D], given the tokens' positions (None when they
+are already in the contents: `ModelConfig.positions`). `Policy` picks one by
+name from `INTERACTORS` (`ModelConfig.interactor`), so a new reading of the
+paper's "cross-attention" is a new class here and one dictionary entry.
 """
 
 from __future__ import annotations
@@ -11,7 +12,7 @@ from __future__ import annotations
 import flax.linen as nn
 import jax.numpy as jnp
 
-from skillplug_jax.model.transformer import FeedForward
+from skillplug_jax.model.transformer import FeedForward, with_pos
 
 
 class QueryOffsetInteractor(nn.Module):
@@ -19,7 +20,8 @@ class QueryOffsetInteractor(nn.Module):
 
   DESIGN's reading of the paper: the skill shifts what every token looks for,
   so each skill gathers different scene content; a residual keeps h and a
-  pre-normed FF block follows, as in a transformer layer.
+  pre-normed FF block follows, as in a transformer layer. Positions go into
+  the queries and keys, as in the encoder.
   """
   hidden: int
   heads: int
@@ -28,15 +30,16 @@ class QueryOffsetInteractor(nn.Module):
   dtype: jnp.dtype = jnp.float32
 
   @nn.compact
-  def __call__(self, h, skills, deterministic: bool = True):
+  def __call__(self, h, skills, deterministic: bool = True, pos=None):
     h, skills = h.astype(self.dtype), skills.astype(self.dtype)
     hn = nn.LayerNorm(dtype=self.dtype, name="norm1")(h)[:, None]  # [B, 1, N, D]
+    keys = with_pos(hn, pos)
     offset = nn.Dense(self.hidden, dtype=self.dtype, name="skill_proj")(skills)
-    queries = hn + offset[:, :, None, :]  # [B, K, N, D]
-    keys = jnp.broadcast_to(hn, queries.shape)
+    queries = keys + offset[:, :, None, :]  # [B, K, N, D]
+    values = jnp.broadcast_to(hn, queries.shape)
     y = nn.MultiHeadDotProductAttention(
         num_heads=self.heads, dropout_rate=self.dropout, dtype=self.dtype, name="attn")(
-            queries, keys, deterministic=deterministic)
+            queries, jnp.broadcast_to(keys, queries.shape), values, deterministic=deterministic)
     u = h[:, None] + nn.Dropout(self.dropout)(y, deterministic=deterministic)
     y = nn.LayerNorm(dtype=self.dtype, name="norm2")(u)
     y = FeedForward(self.hidden, self.ff, self.dropout, self.dtype, name="ff")(y, deterministic)
@@ -53,7 +56,8 @@ class FiLMInteractor(nn.Module):
   dtype: jnp.dtype = jnp.float32
 
   @nn.compact
-  def __call__(self, h, skills, deterministic: bool = True):
+  def __call__(self, h, skills, deterministic: bool = True, pos=None):
+    del pos  # token-wise: positions play no part
     h, skills = h.astype(self.dtype), skills.astype(self.dtype)
     gamma, beta = jnp.split(
         nn.Dense(2 * self.hidden, dtype=self.dtype, name="film")(skills), 2, axis=-1)

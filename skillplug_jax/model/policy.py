@@ -63,19 +63,19 @@ class Policy(nn.Module):
     actions, mask = batch["actions"], batch["action_mask"]
     cvae_mu, cvae_logvar = self.cvae(batch["joint_pos"], actions, mask, deterministic)
     style_z = reparameterise(self.make_rng("sample"), cvae_mu, cvae_logvar) if train else cvae_mu
-    h = self.encoder(batch, style_z, deterministic)
+    h, pos = self.encoder(batch, style_z, deterministic)
     out = dict(cvae_mu=cvae_mu, cvae_logvar=cvae_logvar)
     if cfg.is_skillplug:
       skills = self.skills()
       post = self.posterior(actions, mask, skills, sample=train)
-      u = self.interactor(h, skills[None] + post["offset"].astype(skills.dtype), deterministic)
+      u = self.interactor(h, skills[None] + post["offset"].astype(skills.dtype), deterministic, pos)
       routing = self.router(h)
       h = self._fuse(routing, u)
       out.update(router_probs=routing,
                  skill_features=u.mean(axis=2).astype(jnp.float32),
                  posterior_mu=post["mu"], posterior_logvar=post["logvar"],
                  traj_logits=post["traj_logits"])
-    out["pred_actions"] = self.action_head(h, deterministic)
+    out["pred_actions"] = self.action_head(h, pos, deterministic)
     return out
 
   def predict(self, obs: Mapping[str, jnp.ndarray],
@@ -88,25 +88,26 @@ class Policy(nn.Module):
     """
     cfg = self.config
     batch = obs["joint_pos"].shape[0]
-    h = self.encode(obs)
+    h, pos = self.encode(obs)
     if not cfg.is_skillplug:
-      return self.action_head(h, True), None
+      return self.action_head(h, pos, True), None
     skills = self.skills()
-    u = self.interactor(h, jnp.broadcast_to(skills, (batch,) + skills.shape), True)
+    u = self.interactor(h, jnp.broadcast_to(skills, (batch,) + skills.shape), True, pos)
     if routing is None:
       routing = self.router(h)
     routing = jnp.broadcast_to(jnp.asarray(routing, jnp.float32), (batch, cfg.num_skills))
-    return self.action_head(self._fuse(routing, u), True), routing
+    return self.action_head(self._fuse(routing, u), pos, True), routing
 
   def encode(self, obs, style_z=None, train: bool = False):
-    """f_enc alone: scene tokens h [B, N, hidden] (style latent zero by default)."""
+    """f_enc alone: (scene tokens h [B, N, hidden], their positions [1, N, hidden]
+    or None), with the style latent zero by default."""
     if style_z is None:
       style_z = jnp.zeros((obs["joint_pos"].shape[0], self.config.latent_dim), jnp.float32)
     return self.encoder(obs, style_z, not train)
 
-  def act(self, h, train: bool = False):
-    """f_act alone: tokens [B, N, hidden] -> action chunk [B, chunk, A]."""
-    return self.action_head(h, not train)
+  def act(self, h, pos=None, train: bool = False):
+    """f_act alone: tokens [B, N, hidden] (and positions) -> action chunk [B, chunk, A]."""
+    return self.action_head(h, pos, not train)
 
   @staticmethod
   def _fuse(routing, u):

@@ -31,7 +31,7 @@ class TrainConfig:
   batch_size: int = 16
   lr: float = 1e-4
   weight_decay: float = 1e-4
-  grad_clip: float = 1.0  # global-norm clipping
+  grad_clip: float = 1.0  # global-norm clipping (ACT: none); <= 0 turns it off
   warmup_steps: int = 0
   epochs: float = 6000.0  # ACT epochs: one random timestep per episode each
   max_steps: int = 0  # > 0: train this many steps instead of `epochs`
@@ -121,7 +121,8 @@ def to_dict(cfg) -> dict:
 
 def from_dict(d: dict) -> TrainConfig:
   d = dict(d)
-  model = ModelConfig(**{k: tuple(v) if isinstance(v, list) else v for k, v in d.pop("model").items()})
+  model = {**model_config.LEGACY_DEFAULTS, **d.pop("model")}
+  model = ModelConfig(**{k: tuple(v) if isinstance(v, list) else v for k, v in model.items()})
   loss = LossWeights(**d.pop("loss"))
   d = {k: tuple(v) if isinstance(v, list) else v for k, v in d.items()}
   return TrainConfig(model=model, loss=loss, **d)

@@ -69,8 +69,9 @@ def optimizer(cfg: TrainConfig, params) -> optax.GradientTransformation:
   lr = optax.join_schedules(
       [optax.linear_schedule(0.0, cfg.lr, max(cfg.warmup_steps, 1)), optax.constant_schedule(cfg.lr)],
       [max(cfg.warmup_steps, 1)]) if cfg.warmup_steps > 0 else cfg.lr
-  tx = optax.chain(optax.clip_by_global_norm(cfg.grad_clip),
-                   optax.adamw(lr, weight_decay=cfg.weight_decay))
+  tx = optax.adamw(lr, weight_decay=cfg.weight_decay)
+  if cfg.grad_clip > 0:
+    tx = optax.chain(optax.clip_by_global_norm(cfg.grad_clip), tx)
   if cfg.trainable:
     tx = freeze.masked_optimizer(tx, params, cfg.trainable)
   return tx
@@ -145,7 +146,8 @@ def train(cfg: TrainConfig, progress: bool = True, stop_after: int | None = None
   replicated = NamedSharding(mesh, PartitionSpec())
   loader = data_loader.ChunkLoader(data, cfg.batch_size, chunk=cfg.model.chunk, seed=cfg.seed,
                                    images=cfg.model.use_images,
-                                   sharding=NamedSharding(mesh, PartitionSpec("data")))
+                                   sharding=NamedSharding(mesh, PartitionSpec("data")),
+                                   normalize_object_state=cfg.model.normalize_object_state)
   total = cfg.num_steps(data.num_episodes)
 
   key = jax.random.PRNGKey(cfg.seed)
