@@ -9,7 +9,9 @@ task (paired across variants and seeds); a finished run or evaluation is
 reused, so a killed sweep resumes where it stopped. Two worker processes
 (one per core) run (variant, seed) jobs side by side. The summary (success
 mean and standard error over seeds, each seed's rate, mean control steps to
-success) goes to OUT/summary_<taskset>_<n>seeds.{md,json}. With --reference
+success) goes to OUT/summary_<taskset>_<n>seeds.{md,json}. `--policy skillplug`
+runs the same variants on ACT+SkillPlug, whose encoder and action head are
+ACT's (summary_<taskset>_skillplug_<n>seeds). With --reference
 DIR (what `tools/ref_act_closed_loop.py` wrote: LeRobot's ACT on the same
 batches and trials), the summary adds it as a row, and for each variant the
 paired counts over the seeds both have: trials only the variant solved, and
@@ -65,20 +67,21 @@ VARIANTS = {
 }
 
 
-def run_dir(out: Path, taskset: str, variant: str, seed: int) -> Path:
-  return out / "runs" / f"{taskset}_{variant}_seed{seed}"
+def run_dir(out: Path, taskset: str, variant: str, seed: int, policy: str = "act") -> Path:
+  prefix = taskset if policy == "act" else f"{taskset}_{policy}"
+  return out / "runs" / f"{prefix}_{variant}_seed{seed}"
 
 
-def job(out: Path, taskset: str, variant: str, seed: int, trials: int) -> dict:
+def job(out: Path, taskset: str, variant: str, seed: int, trials: int, policy: str = "act") -> dict:
   """Train one (variant, seed) if not done, evaluate it if not done; its per-task results."""
   from skillplug_jax.evaluate import protocol
   from skillplug_jax.train import config, loop
   envs.quiet_warp()
-  run = run_dir(out, taskset, variant, seed)
+  run = run_dir(out, taskset, variant, seed, policy)
   result_file = run / f"eval_{trials}trials.json"
   if result_file.exists():
     return json.loads(result_file.read_text())
-  cfg = config.override(config.preset("quick", "act"), VARIANTS[variant][0] + [
+  cfg = config.override(config.preset("quick", policy), VARIANTS[variant][0] + [
       f"taskset={taskset}", f"seed={seed}", f"data_dir={out / 'datasets'}", f"workdir={run}"])
   t0 = time.time()
   loop.train(cfg, progress=False)
@@ -87,10 +90,10 @@ def job(out: Path, taskset: str, variant: str, seed: int, trials: int) -> dict:
   results = protocol.evaluate_runs([run], envs.taskset(taskset), trials, batch=trials, progress=False)["results"]
   keep = ("task", "abbr", "trials", "seed", "success_rate", "successes", "mean_steps_success",
           "mean_queries_success", "trial_success", "nan_episodes")
-  out_ = dict(variant=variant, seed=seed, train_s=round(train_s, 1), eval_s=round(time.time() - t0, 1),
+  out_ = dict(variant=variant, policy=policy, seed=seed, train_s=round(train_s, 1), eval_s=round(time.time() - t0, 1),
               tasks=[{k: r[k] for k in keep} for r in results])
   write_json_atomic(result_file, out_)
-  print(f"[act_parity] {variant} seed {seed}: " + ", ".join(
+  print(f"[act_parity] {policy} {variant} seed {seed}: " + ", ".join(
       f"{r['abbr']} {100 * r['success_rate']:.0f}" for r in results), file=sys.stderr, flush=True)
   return out_
 
@@ -160,6 +163,8 @@ def markdown(rows: dict, tasks) -> str:
 def main(argv=None) -> int:
   p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
   p.add_argument("--taskset", default="quickstart3")
+  p.add_argument("--policy", default="act", choices=("act", "skillplug"),
+                 help="whose departures: ACT's, or ACT+SkillPlug's (same encoder and action head)")
   p.add_argument("--variants", default=",".join(VARIANTS), help=f"comma-separated, of: {', '.join(VARIANTS)}")
   p.add_argument("--seeds", default="0,1,2", help="training seeds")
   p.add_argument("--trials", type=int, default=50, help="paired evaluation episodes per task")
@@ -182,7 +187,8 @@ def main(argv=None) -> int:
   t0 = time.time()
   todo = [(v, s) for v in variants for s in seeds]
   with ProcessPoolExecutor(args.workers, mp_context=multiprocessing.get_context("spawn")) as pool:
-    parts = list(pool.map(job, *zip(*[(out, args.taskset, v, s, args.trials) for v, s in todo])))
+    parts = list(pool.map(job, *zip(*[(out, args.taskset, v, s, args.trials, args.policy)
+                                      for v, s in todo])))
   reference = []
   if args.reference:
     files = [Path(args.reference) / f"{args.taskset}_seed{s}.json" for s in seeds]
@@ -192,7 +198,7 @@ def main(argv=None) -> int:
   rows = summarise(parts, variants, tasks, reference)
   text = markdown(rows, tasks)
   print(text)
-  name = f"summary_{args.taskset}_{len(seeds)}seeds"
+  name = f"summary_{args.taskset}{'' if args.policy == 'act' else '_' + args.policy}_{len(seeds)}seeds"
   write_json_atomic(out / f"{name}.json", dict(taskset=args.taskset, trials=args.trials, seeds=seeds,
                                                wall_s=round(time.time() - t0, 1), rows=rows))
   write_text_atomic(out / f"{name}.md", text + "\n")
