@@ -17,8 +17,8 @@ from typing import Iterable
 
 import numpy as np
 
-from skillplug_jax.atomic_json import read_json, write_json_atomic
 from envs import OBJECT_STATE_DIM
+from skillplug_jax.atomic_json import read_json, write_json_atomic
 from skillplug_jax.data import rlds
 
 STATS_FILE = "norm_stats.json"
