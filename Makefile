@@ -76,8 +76,12 @@ bench-envs: install
 bench-loader: install
 	$(PY) -m experiments.bench_loader --dataset $(DATASET) --out $(OUT)/bench_loader.json
 
+# Train step and inference, per preset and policy; REF_PYTHON=<a Python with LeRobot> also times
+# LeRobot's ACT at the paper shapes before and after ours (../shared/tools/ref_act_bench.py).
+REF_PYTHON ?=
 bench-train: install
-	$(PY) -m experiments.bench_train --out $(OUT)/bench_train.json
+	mkdir -p $(OUT)
+	$(PY) -m experiments.bench_train --out $(OUT)/bench_train.json $(if $(REF_PYTHON),--reference $(REF_PYTHON),)
 
 bench-eval: install
 	mkdir -p $(OUT)

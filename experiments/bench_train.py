@@ -1,33 +1,60 @@
-"""Training-step benchmark: steps/s and samples/s for ACT and ACT+SkillPlug.
+"""Training and inference benchmark of ACT and ACT+SkillPlug, beside LeRobot's ACT.
 
     make bench-train        # or: python -m experiments.bench_train --presets quick,paper --out results/bench_train.json
+    make bench-train REF_PYTHON=/path/to/lerobot-venv/bin/python   # LeRobot's ACT before and after ours
 
-Times the jitted train step alone (forward, four-term loss, backward, AdamW)
-on a synthetic batch already on the devices, so the number is the model's
-cost; compare it with `bench_loader`'s batches/s to see whether the loader
-keeps up. The SkillPlug overhead is its step time over ACT's at the same
-preset and batch. Each number is the median of `--steps` timed steps after a
-compile step.
+Per preset and policy, each in its own process (so peak memory is its own):
+the jitted train step (forward, losses, backward, AdamW) on a synthetic
+batch already on the devices: median step time, samples/s, compile time,
+the compiled step's XLA buffers and the process's peak RSS; and the jitted
+inference call `Policy.predict(obs) -> chunk` at batch 1 and 64 (median).
+The SkillPlug overhead is its step time over ACT's at the same preset.
+
+With `--reference PYTHON` (a Python that has LeRobot; see
+../shared/tools/ref_act_bench.py for how to build one, outside the project),
+LeRobot's ACT is timed at the paper shapes before and after ours, in the
+same run, and the JSON records both and our speed-up against each.
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import multiprocessing as mp
 import os
+import platform
+import resource
 import statistics
+import subprocess
+import sys
 import time
+from pathlib import Path
 
-import jax
-import jax.numpy as jnp
-import numpy as np
-from jax.sharding import Mesh, NamedSharding, PartitionSpec
-
-from skillplug_jax.train import config, loop
 from skillplug_jax.atomic_json import write_json_atomic
 
+REFERENCE_TOOL = Path(__file__).resolve().parents[2] / "shared" / "tools" / "ref_act_bench.py"
 
-def bench_one(preset: str, policy: str, batch: int, steps: int) -> dict:
+
+def _median_ms(fn, calls: int) -> tuple[float, float]:
+  times = []
+  for _ in range(calls):
+    t = time.perf_counter()
+    fn()
+    times.append(time.perf_counter() - t)
+  return 1000 * statistics.median(times), 1000 * min(times)
+
+
+def bench_one(preset: str, policy: str, batch: int, steps: int, infer_batches: tuple[int, ...],
+              infer_calls: int) -> dict:
+  """One preset and policy, in the calling process."""
+  import jax
+  import jax.numpy as jnp
+  import numpy as np
+  from jax.sharding import Mesh, NamedSharding, PartitionSpec
+
+  from skillplug_jax.model.policy import Policy
+  from skillplug_jax.train import config, loop
+
   cfg = config.override(config.preset(preset, policy), [f"batch_size={batch}"])
   mesh = Mesh(np.asarray(jax.devices()), ("data",))
   repl, data = NamedSharding(mesh, PartitionSpec()), NamedSharding(mesh, PartitionSpec("data"))
@@ -36,49 +63,132 @@ def bench_one(preset: str, policy: str, batch: int, steps: int) -> dict:
   n_params = sum(x.size for x in jax.tree.leaves(params))
   tx = loop.optimizer(cfg, params)
   state = jax.device_put(loop.TrainState(jnp.zeros((), jnp.int32), params, tx.init(params)), repl)
-  rng = np.random.default_rng(0)
-  b = {k: np.array(v) for k, v in loop.example_batch(cfg, batch).items()}
-  for k, v in b.items():
-    if v.dtype == np.float32:
-      b[k] = rng.normal(size=v.shape).astype(np.float32)
-    elif v.dtype == np.uint8:
-      b[k] = rng.integers(0, 256, size=v.shape, dtype=np.uint8)
-  b["action_mask"][:, -5:] = False
-  b = jax.device_put(b, data)
-  step = jax.jit(loop.make_train_step(cfg, tx, key), donate_argnums=0, out_shardings=(repl, repl))
+
+  def synthetic(size):
+    rng = np.random.default_rng(0)
+    b = {k: np.array(v) for k, v in loop.example_batch(cfg, size).items()}
+    for k, v in b.items():
+      if v.dtype == np.float32:
+        b[k] = rng.normal(size=v.shape).astype(np.float32)
+      elif v.dtype == np.uint8:
+        b[k] = rng.integers(0, 256, size=v.shape, dtype=np.uint8)
+    b["action_mask"][:, -5:] = False
+    return b
+
+  b = jax.device_put(synthetic(batch), data)
   t = time.perf_counter()
-  state, m = step(state, b)
-  jax.block_until_ready(m)
+  step = jax.jit(loop.make_train_step(cfg, tx, key), donate_argnums=0, out_shardings=(repl, repl))
+  compiled = step.lower(state, b).compile()
   compile_s = time.perf_counter() - t
-  times = []
-  for _ in range(steps):
-    t = time.perf_counter()
-    state, m = step(state, b)
+  mem = compiled.memory_analysis()
+  holder = [state]
+
+  def one_step():
+    holder[0], m = compiled(holder[0], b)
     jax.block_until_ready(m)
-    times.append(time.perf_counter() - t)
-  dt = statistics.median(times)
-  row = dict(preset=preset, policy=policy, batch=batch, images=cfg.model.use_images,
-             hidden=cfg.model.hidden, params_m=round(n_params / 1e6, 2), compile_s=round(compile_s, 1),
-             step_ms=round(1000 * dt, 1), steps_per_s=round(1 / dt, 2), samples_per_s=round(batch / dt, 1))
-  print(json.dumps(row), flush=True)
+
+  t = time.perf_counter()
+  one_step()  # the first call also allocates; not timed
+  if steps <= 0:  # about 10 s of timed steps, at least 5
+    steps = int(min(max(10 / (time.perf_counter() - t), 5), 300))
+  step_ms, step_min_ms = _median_ms(one_step, steps)
+
+  model = Policy(cfg.model)
+  predict = jax.jit(lambda p, obs: model.apply({"params": p}, obs, method=Policy.predict)[0])
+  params = holder[0].params
+  infer = {}
+  for size in infer_batches:
+    obs = {k: v for k, v in synthetic(size).items() if k not in ("actions", "action_mask", "task_id")}
+    obs = jax.device_put(obs)
+    t = time.perf_counter()
+    jax.block_until_ready(predict(params, obs))
+    first_s = time.perf_counter() - t
+    ms, _ = _median_ms(lambda: jax.block_until_ready(predict(params, obs)), infer_calls)
+    infer[str(size)] = dict(ms=round(ms, 2), compile_s=round(first_s, 1))
+
+  return dict(preset=preset, policy=policy, batch=batch, images=cfg.model.use_images,
+              hidden=cfg.model.hidden, params_m=round(n_params / 1e6, 2), compile_s=round(compile_s, 1),
+              step_ms=round(step_ms, 1), step_min_ms=round(step_min_ms, 1), steps=steps,
+              steps_per_s=round(1000 / step_ms, 2), samples_per_s=round(1000 * batch / step_ms, 1),
+              xla_temp_mb=round(mem.temp_size_in_bytes / 2**20, 1) if mem else None,
+              xla_args_mb=round(mem.argument_size_in_bytes / 2**20, 1) if mem else None,
+              peak_rss_mb=round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024, 1),
+              infer_ms={k: v["ms"] for k, v in infer.items()},
+              infer_compile_s={k: v["compile_s"] for k, v in infer.items()})
+
+
+def _child(queue, args):
+  try:
+    queue.put(bench_one(*args))
+  except BaseException as e:  # noqa: BLE001 - reported by the parent
+    queue.put(e)
+
+
+def bench_in_process(*args) -> dict:
+  """`bench_one` in a fresh process: its own peak RSS and compile caches."""
+  ctx = mp.get_context("spawn")
+  queue = ctx.Queue()
+  proc = ctx.Process(target=_child, args=(queue, args))
+  proc.start()
+  result = queue.get()
+  proc.join()
+  if isinstance(result, BaseException):
+    raise RuntimeError(f"benchmark of {args[:2]} failed: {result!r}") from result
+  print(json.dumps(result), flush=True)
+  return result
+
+
+def reference(python: str, steps: int) -> dict:
+  """LeRobot's ACT at the paper shapes (ref_act_bench.py), its JSON line."""
+  if not REFERENCE_TOOL.exists():
+    raise FileNotFoundError(f"the reference benchmark {REFERENCE_TOOL} is missing")
+  cmd = [python, str(REFERENCE_TOOL), "--dec-layers", "7", "--steps", str(steps), "--warmup", "2"]
+  print("reference:", " ".join(cmd), flush=True)
+  out = subprocess.run(cmd, check=True, capture_output=True, text=True)
+  row = json.loads(out.stdout.strip().splitlines()[-1])
+  print(json.dumps({k: row[k] for k in ("train_step_ms_median", "samples_per_s", "infer_ms_b1", "infer_ms_b64")}),
+        flush=True)
   return row
 
 
 def main(argv=None):
   p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
   p.add_argument("--presets", default="quick,paper")
+  p.add_argument("--policies", default="act,skillplug")
   p.add_argument("--batch", type=int, default=0, help="batch size (0: each preset's own)")
-  p.add_argument("--steps", type=int, default=5)
+  p.add_argument("--steps", type=int, default=0,
+                 help="timed train steps, median reported (0: about 10 s of them, at least 5)")
+  p.add_argument("--infer-batches", default="1,64")
+  p.add_argument("--infer-calls", type=int, default=20, help="timed inference calls per batch (median)")
+  p.add_argument("--reference", metavar="PYTHON", default=os.environ.get("REF_PYTHON", ""),
+                 help="a Python with LeRobot: time its ACT (paper shapes) before and after ours")
+  p.add_argument("--reference-steps", type=int, default=10)
   p.add_argument("--out", default="results/bench_train.json")
   args = p.parse_args(argv)
+  from skillplug_jax.train import config  # jax is imported by the children only, after this
+
+  infer_batches = tuple(int(x) for x in args.infer_batches.split(",") if x)
+  refs = [reference(args.reference, args.reference_steps)] if args.reference else []
   rows = []
   for preset in args.presets.split(","):
     batch = args.batch or config.preset(preset).batch_size
-    pair = {pol: bench_one(preset, pol, batch, args.steps) for pol in ("act", "skillplug")}
-    pair["skillplug"]["overhead_vs_act"] = round(pair["skillplug"]["step_ms"] / pair["act"]["step_ms"], 3)
-    rows += [pair["act"], pair["skillplug"]]
-  result = dict(devices=[str(d) for d in jax.devices()], xla_flags=os.environ.get("XLA_FLAGS", ""),
-                results=rows)
+    pair = {pol: bench_in_process(preset, pol, batch, args.steps, infer_batches, args.infer_calls)
+            for pol in args.policies.split(",")}
+    if "act" in pair and "skillplug" in pair:
+      pair["skillplug"]["overhead_vs_act"] = round(pair["skillplug"]["step_ms"] / pair["act"]["step_ms"], 3)
+    rows += list(pair.values())
+  if args.reference:
+    refs.append(reference(args.reference, args.reference_steps))
+    for row in rows:
+      if row["preset"] == "paper":
+        row["vs_reference"] = [dict(samples_per_s=round(row["samples_per_s"] / r["samples_per_s"], 2),
+                                    infer_b1=round(r["infer_ms_b1"] / row["infer_ms"]["1"], 2)
+                                    if "1" in row["infer_ms"] else None) for r in refs]
+  import jax
+  result = dict(devices=[str(d) for d in jax.devices()], cpu=platform.processor() or platform.machine(),
+                cpu_count=os.cpu_count(), xla_flags=os.environ.get("XLA_FLAGS", ""),
+                jax=jax.__version__, command=" ".join([sys.executable, "-m", "experiments.bench_train"] + (argv or sys.argv[1:])),
+                results=rows, reference=refs)
   write_json_atomic(args.out, result)
   print(f"wrote {args.out}")
 

@@ -134,8 +134,10 @@ class CVAEEncoder(nn.Module):
     if cfg.positions == "input":
       x, pos = x + pos, None
     valid = jnp.concatenate([jnp.ones((batch, 2), bool), action_mask.astype(bool)], axis=1)
+    # only the CLS token is read: the last layer computes its output alone
     x = TransformerEncoder(cfg.cvae_enc_layers, cfg.hidden, cfg.heads, cfg.ff, cfg.dropout, dt,
-                           cfg.pre_norm, name="transformer")(x, deterministic, valid[:, None, None, :], pos)
+                           cfg.pre_norm, name="transformer")(
+                               x, deterministic, valid[:, None, None, :], pos, outputs=1)
     # Zero-initialised by default (ACT: torch's default init): the latent
     # starts at the prior, so the KL term (weight 10) does not dominate the
     # first steps (a random start costs ~30 nats).

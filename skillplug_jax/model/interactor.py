@@ -12,6 +12,7 @@ from __future__ import annotations
 import flax.linen as nn
 import jax.numpy as jnp
 
+from skillplug_jax.model.attention import MultiHeadAttention
 from skillplug_jax.model.transformer import FeedForward, with_pos
 
 
@@ -35,11 +36,11 @@ class QueryOffsetInteractor(nn.Module):
     hn = nn.LayerNorm(dtype=self.dtype, name="norm1")(h)[:, None]  # [B, 1, N, D]
     keys = with_pos(hn, pos)
     offset = nn.Dense(self.hidden, dtype=self.dtype, name="skill_proj")(skills)
-    queries = keys + offset[:, :, None, :]  # [B, K, N, D]
-    values = jnp.broadcast_to(hn, queries.shape)
-    y = nn.MultiHeadDotProductAttention(
+    # queries keys + offset_k [B, K, N, D]; keys and values are the same for
+    # every skill, so they are projected once and broadcast over k
+    y = MultiHeadAttention(
         num_heads=self.heads, dropout_rate=self.dropout, dtype=self.dtype, name="attn")(
-            queries, jnp.broadcast_to(keys, queries.shape), values, deterministic=deterministic)
+            keys, keys, hn, deterministic=deterministic, query_offset=offset[:, :, None, :])
     u = h[:, None] + nn.Dropout(self.dropout)(y, deterministic=deterministic)
     y = nn.LayerNorm(dtype=self.dtype, name="norm2")(u)
     y = FeedForward(self.hidden, self.ff, self.dropout, self.dtype, name="ff")(y, deterministic)

@@ -20,6 +20,8 @@ import flax.linen as nn
 import jax.numpy as jnp
 import numpy as np
 
+from skillplug_jax.model.attention import MultiHeadAttention
+
 
 def sinusoidal_1d(length: int, dim: int) -> np.ndarray:
   """Fixed [length, dim] position table (Vaswani et al.)."""
@@ -58,8 +60,7 @@ class FeedForward(nn.Module):
 
 
 def _attention(heads, dropout, dtype, name):
-  return nn.MultiHeadDotProductAttention(
-      num_heads=heads, dropout_rate=dropout, dtype=dtype, name=name)
+  return MultiHeadAttention(num_heads=heads, dropout_rate=dropout, dtype=dtype, name=name)
 
 
 def with_pos(x, pos):
@@ -67,7 +68,12 @@ def with_pos(x, pos):
 
 
 class EncoderLayer(nn.Module):
-  """Self-attention and FF, each with a residual (pre- or post-normed)."""
+  """Self-attention and FF, each with a residual (pre- or post-normed).
+
+  `outputs=n` computes only the first n tokens' outputs (every token is
+  still a key and a value): what a stack's last layer needs when only its
+  first token is read, as ACT's CVAE reads its CLS token.
+  """
   hidden: int
   heads: int
   ff: int
@@ -76,18 +82,20 @@ class EncoderLayer(nn.Module):
   pre_norm: bool = True
 
   @nn.compact
-  def __call__(self, x, deterministic: bool, mask=None, pos=None):
+  def __call__(self, x, deterministic: bool, mask=None, pos=None, outputs=None):
     drop = lambda y: nn.Dropout(self.dropout)(y, deterministic=deterministic)
     norm1 = nn.LayerNorm(dtype=self.dtype, name="norm1")
     norm2 = nn.LayerNorm(dtype=self.dtype, name="norm2")
     attn = _attention(self.heads, self.dropout, self.dtype, "self_attn")
     ff = FeedForward(self.hidden, self.ff, self.dropout, self.dtype, name="ff")
+    first = (lambda y: y) if outputs is None else (lambda y: y if y is None else y[:, :outputs])
     if self.pre_norm:
       y = norm1(x)
-      x = x + drop(attn(with_pos(y, pos), with_pos(y, pos), y, mask=mask, deterministic=deterministic))
+      x = first(x) + drop(attn(with_pos(first(y), first(pos)), with_pos(y, pos), y, mask=mask,
+                               deterministic=deterministic))
       return x + drop(ff(norm2(x), deterministic))
-    x = norm1(x + drop(attn(with_pos(x, pos), with_pos(x, pos), x, mask=mask,
-                            deterministic=deterministic)))
+    x = norm1(first(x) + drop(attn(with_pos(first(x), first(pos)), with_pos(x, pos), x, mask=mask,
+                                   deterministic=deterministic)))
     return norm2(x + drop(ff(x, deterministic)))
 
 
@@ -127,7 +135,11 @@ class DecoderLayer(nn.Module):
 
 
 class TransformerEncoder(nn.Module):
-  """A stack of `EncoderLayer`s; pre-norm ends with one more LayerNorm."""
+  """A stack of `EncoderLayer`s; pre-norm ends with one more LayerNorm.
+
+  `outputs=n`: return only the first n tokens, and let the last layer
+  compute only those (the same values; less work).
+  """
   layers: int
   hidden: int
   heads: int
@@ -137,8 +149,11 @@ class TransformerEncoder(nn.Module):
   pre_norm: bool = True
 
   @nn.compact
-  def __call__(self, x, deterministic: bool, mask=None, pos=None):
+  def __call__(self, x, deterministic: bool, mask=None, pos=None, outputs=None):
     for i in range(self.layers):
+      last = i == self.layers - 1
       x = EncoderLayer(self.hidden, self.heads, self.ff, self.dropout, self.dtype, self.pre_norm,
-                       name=f"layer{i + 1}")(x, deterministic, mask, pos)
+                       name=f"layer{i + 1}")(x, deterministic, mask, pos, outputs if last else None)
+    if outputs is not None and self.layers == 0:
+      x = x[:, :outputs]
     return nn.LayerNorm(dtype=self.dtype, name="final_norm")(x) if self.pre_norm else x
