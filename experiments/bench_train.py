@@ -31,6 +31,7 @@ import time
 from pathlib import Path
 
 from skillplug_jax.atomic_json import write_json_atomic
+from skillplug_jax.train import config
 
 REFERENCE_TOOL = Path(__file__).resolve().parents[2] / "shared" / "tools" / "ref_act_bench.py"
 
@@ -53,7 +54,7 @@ def bench_one(preset: str, policy: str, batch: int, steps: int, infer_batches: t
   from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
   from skillplug_jax.model.policy import Policy
-  from skillplug_jax.train import config, loop
+  from skillplug_jax.train import loop
 
   cfg = config.override(config.preset(preset, policy), [f"batch_size={batch}"])
   mesh = Mesh(np.asarray(jax.devices()), ("data",))
@@ -165,7 +166,6 @@ def main(argv=None):
   p.add_argument("--reference-steps", type=int, default=10)
   p.add_argument("--out", default="results/bench_train.json")
   args = p.parse_args(argv)
-  from skillplug_jax.train import config  # jax is imported by the children only, after this
 
   infer_batches = tuple(int(x) for x in args.infer_batches.split(",") if x)
   refs = [reference(args.reference, args.reference_steps)] if args.reference else []

@@ -31,7 +31,7 @@ PATCH_CONV_MAX_CELLS = 16  # output maps of at most this many cells use patch_co
 
 
 def patch_conv(lhs, rhs, window_strides, padding, lhs_dilation=None, rhs_dilation=None,
-               dimension_numbers=None, feature_group_count=1, precision=None, **unused):
+               dimension_numbers=None, feature_group_count=1, precision=None):
   """`lax.conv_general_dilated` for NHWC inputs and HWIO kernels (what nn.Conv
   passes), as one dot of the flattened patches with the flattened kernel when
   the output map is small; the convolution itself otherwise."""
