@@ -15,7 +15,7 @@ BACKEND ?= auto
 
 export MUJOCO_GL ?= egl
 
-.PHONY: install test quickstart experts demos pretrain fewshot eval bench-envs bench-loader bench-train bench-eval bench scenes clean
+.PHONY: install test quickstart paper-cpu notebooks experts demos pretrain fewshot eval bench-envs bench-loader bench-train bench-eval bench scenes clean
 
 install: $(VENV)/.installed
 
@@ -44,11 +44,25 @@ demos: install
 	$(VENV)/bin/skillplug demos --taskset $(TASKSET) --demos $(DEMOS) --backend $(BACKEND) --out $(OUT)/datasets $(if $(filter 0,$(IMAGES)),--state-only,)
 
 # Multi-task pretraining: generates the demos when missing, trains, prints the checkpoint path.
+# CONFIG: experiments/configs/NAME.py (quick, cpu, budget, paper); PRESET is its old name.
 POLICY ?= skillplug
 PRESET ?= quick
+CONFIG ?= $(PRESET)
 SEED ?= 0
 pretrain: install
-	$(VENV)/bin/skillplug pretrain --taskset $(TASKSET) --policy $(POLICY) --preset $(PRESET) --seed $(SEED) --backend $(BACKEND)
+	$(VENV)/bin/skillplug pretrain --taskset $(TASKSET) --policy $(POLICY) --config $(CONFIG) --seed $(SEED) --backend $(BACKEND)
+
+# The paper's protocol at CPU scale (experiments/configs/cpu.py): demos, ACT and ACT+SkillPlug
+# over 3 seeds, 50 paired trials per task, few-shot on the 4 unseen tasks, the tables. Resumes
+# where it stopped; its summary and routing arrays are copied to docs/results/paper_cpu/. SET: overrides, e.g.
+# SET="--set seeds=0 --set trials=10".
+SET ?=
+paper-cpu: install
+	$(PY) -m experiments.pipeline --config cpu --out $(OUT)/paper_cpu --publish docs/results/paper_cpu $(SET)
+
+# The notebooks (notebooks/), executed in place on docs/results/paper_cpu.
+notebooks: install
+	$(PY) notebooks/execute.py
 
 # Few-shot: fine-tune FROM (a pretrain run directory) on each unseen task, then evaluate it.
 TRIALS ?= 50
@@ -68,27 +82,27 @@ eval: install
 # Every benchmark that needs no dataset (bench-loader reads one: make demos, then make bench-loader).
 bench: bench-envs bench-train bench-eval
 
-# BENCH_ENVS_ARGS: more options (python -m experiments.bench_envs --help), e.g. --tasks stack_block.
+# BENCH_ENVS_ARGS: more options (python -m benchmarks.bench_envs --help), e.g. --tasks stack_block.
 bench-envs: install
 	mkdir -p $(OUT)
-	$(PY) -m experiments.bench_envs --out $(OUT)/bench_envs.json $(BENCH_ENVS_ARGS)
+	$(PY) -m benchmarks.bench_envs --out $(OUT)/bench_envs.json $(BENCH_ENVS_ARGS)
 
 bench-loader: install
-	$(PY) -m experiments.bench_loader --dataset $(DATASET) --out $(OUT)/bench_loader.json
+	$(PY) -m benchmarks.bench_loader --dataset $(DATASET) --out $(OUT)/bench_loader.json
 
 # Train step and inference, per preset and policy; REF_PYTHON=<a Python with LeRobot> also times
 # LeRobot's ACT at the paper shapes before and after ours (../shared/tools/ref_act_bench.py).
 REF_PYTHON ?=
 bench-train: install
 	mkdir -p $(OUT)
-	$(PY) -m experiments.bench_train --out $(OUT)/bench_train.json $(if $(REF_PYTHON),--reference $(REF_PYTHON),)
+	$(PY) -m benchmarks.bench_train --out $(OUT)/bench_train.json $(if $(REF_PYTHON),--reference $(REF_PYTHON),)
 
 bench-eval: install
 	mkdir -p $(OUT)
-	$(PY) -m experiments.bench_eval --out $(OUT)/bench_eval.json
+	$(PY) -m benchmarks.bench_eval --out $(OUT)/bench_eval.json
 
 scenes: install
-	$(PY) -m experiments.scene_pictures --out docs/scenes
+	$(PY) -m figures.scene_pictures --out docs/scenes
 
 clean:
 	rm -rf $(VENV) $(OUT)

@@ -1,1 +1,1 @@
-"""Experiment configs, sweeps, benchmarks and pictures."""
+"""Experiments: one config per table or figure (configs/), the pipeline that runs them, and sweeps."""

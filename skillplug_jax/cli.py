@@ -87,7 +87,8 @@ def cmd_pretrain(args) -> int:
 
   if args.distributed:  # several hosts: coordinator and process ids come from the cluster's env
     jax.distributed.initialize()
-  cfg = config.preset(args.preset, policy=args.policy)
+  from experiments import configs
+  cfg = configs.get(args.config).train_config(args.policy, seed=0)
   cfg = config.override(cfg, [f"taskset={args.taskset}", f"seed={args.seed}", f"backend={args.backend}"]
                         + list(args.set or []))
   if args.workdir:
@@ -214,8 +215,9 @@ def build_parser() -> argparse.ArgumentParser:
                      formatter_class=argparse.ArgumentDefaultsHelpFormatter)
   t.add_argument("--taskset", default="discoverse7")
   t.add_argument("--policy", default="skillplug", choices=("skillplug", "act"))
-  t.add_argument("--preset", default="quick", choices=("paper", "budget", "quick"),
-                 help="paper: the paper's protocol; budget: ~10 min of one GPU; quick: CPU minutes, state only")
+  t.add_argument("--config", "--preset", dest="config", default="quick", metavar="NAME",
+                 help="experiments/configs/NAME.py: quick (CPU minutes, state only), cpu (the CPU-scale "
+                      "preset), budget (~10 min of one GPU), paper (the paper's protocol), or another config")
   t.add_argument("--seed", type=int, default=0, help="training seed (initialisation, batches, dropout)")
   t.add_argument("--set", action="append", metavar="KEY=VALUE",
                  help="override a config field, e.g. --set lr=3e-4 --set model.hidden=128 --set loss.sd=0.5")
@@ -249,7 +251,8 @@ def build_parser() -> argparse.ArgumentParser:
   f.add_argument("--taskset", default="discoverse_fewshot4")
   f.add_argument("--demos", type=int, default=10, help="demonstrations per unseen task")
   f.add_argument("--steps", type=int, default=None,
-                 help="fine-tuning steps (default per preset: quick 500, budget 2000, paper 6000 epochs)")
+                 help="fine-tuning steps (default: the source run's config's fewshot.steps, e.g. quick 500; "
+                      "0 trains the source's epochs)")
   f.add_argument("--trials", type=int, default=50)
   f.add_argument("--seed", type=int, default=1000)
   f.add_argument("--batch", type=int, default=50)

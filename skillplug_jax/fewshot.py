@@ -1,10 +1,11 @@
 """Few-shot adaptation: one fine-tune per unseen task from a multi-task run, then its evaluation.
 
-The paper's protocol: ACT+SkillPlug retrains the router and the action head
-(encoder, skill library, interactor and posterior frozen); the ACT baseline
-retrains the action head only. Both are the ordinary training loop with an
-optax mask (`TrainConfig.trainable`) and the multi-task parameters as the
-starting point (`TrainConfig.init_from`).
+The protocol (which groups train, for how many steps) is the source run's
+experiment config's `fewshot` (experiments/configs/): by the paper,
+ACT+SkillPlug retrains the router and the action head (encoder, skill
+library, interactor and posterior frozen), ACT the action head only. Both
+are the ordinary training loop with an optax mask (`TrainConfig.trainable`)
+and the multi-task parameters as the starting point (`TrainConfig.init_from`).
 """
 
 from __future__ import annotations
@@ -17,20 +18,28 @@ from typing import Sequence
 import envs
 from skillplug_jax.evaluate import groups, protocol, tables
 from skillplug_jax.evaluate.policy_controller import load_controller
-from skillplug_jax.model.freeze import FEWSHOT_TRAINABLE
 from skillplug_jax.train import checkpoint, loop
 from skillplug_jax.train.config import TrainConfig
 
-# Fine-tuning budget per preset (steps); paper: the same 6000 ACT epochs.
-FEWSHOT_STEPS = {"quick": 500, "budget": 2000, "paper": 0}
+def source_protocol(source: TrainConfig):
+  """The few-shot protocol (`configs.FewShot`) of the config a multi-task run was trained from."""
+  from experiments import configs  # the configs build on this package: load them when asked
+  try:
+    return configs.get(source.preset).fewshot
+  except ValueError as e:
+    raise ValueError(f"the run's config {source.preset!r} is not in experiments/configs/, so its few-shot "
+                     f"protocol is unknown: {e}") from e
 
 
 def fewshot_config(source: TrainConfig, source_dir: Path, task: str, taskset: str, demos: int,
-                   steps: int | None = None) -> TrainConfig:
-  steps = FEWSHOT_STEPS.get(source.preset, 0) if steps is None else steps
+                   steps: int | None = None, trainable: Sequence[str] | None = None) -> TrainConfig:
+  """The fine-tune of `source` on `task`; steps and trainable groups default to its config's protocol."""
+  protocol = source_protocol(source) if steps is None or trainable is None else None
+  steps = protocol.steps if steps is None else steps
+  trainable = protocol.trainable(source.model.policy) if trainable is None else tuple(sorted(trainable))
   return dataclasses.replace(
       source, taskset=task, data_taskset=taskset, demos=demos, init_from=str(source_dir),
-      trainable=tuple(sorted(FEWSHOT_TRAINABLE[source.model.policy])), max_steps=steps,
+      trainable=trainable, max_steps=steps,
       warmup_steps=min(source.warmup_steps, max(steps // 10, 0)),
       ckpt_every=max(steps, 1) if steps else source.ckpt_every,
       workdir=str(Path(f"{source_dir}_fewshot") / task))

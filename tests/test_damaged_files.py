@@ -155,7 +155,7 @@ def test_evaluation_reads_the_parameters_without_an_optimizer(finished_run, monk
   run = finished_run[0]
   cfg = checkpoint.read_config(run)
   params = loop.init_params(cfg, jax.random.PRNGKey(0))
-  whole = loop.TrainState(jax.numpy.zeros((), "int32"), params, loop.optimizer(cfg, params).init(params))
+  whole = loop.TrainState(jax.numpy.zeros((), "int32"), params, loop.optimizer(cfg, params, cfg.max_steps).init(params))
   mngr = checkpoint.manager(run)
   whole, whole_step, _ = checkpoint.restore_latest(mngr, whole)
   mngr.close()

@@ -131,7 +131,7 @@ def test_temporal_ensemble_matches_act_formula():
 
 
 def _tiny_policy(policy="skillplug"):
-  m = dataclasses.replace(model_config.quick(), policy=policy, hidden=32, heads=2, ff=64, enc_layers=1,
+  m = dataclasses.replace(train_config.preset("quick").model, policy=policy, hidden=32, heads=2, ff=64, enc_layers=1,
                           dec_layers=1, cvae_enc_layers=1, num_skills=3, skill_latent_dim=8,
                           alignment_dim=16, chunk=8)
   cfg = train_config.TrainConfig(preset="quick", model=m)
@@ -344,8 +344,8 @@ def test_queries_tables_per_seed_and_over_paired_trials():
   assert tables.csv(p).splitlines()[3] == "ACT,1,50.00,,,,50.00,"
 
 
-def test_eval_cli_and_quickstart_print_and_write_every_table(tmp_path, monkeypatch, capsys):
-  from experiments import quickstart
+def test_eval_cli_and_pipeline_print_and_write_every_table(tmp_path, monkeypatch, capsys):
+  from experiments import configs, pipeline
   from skillplug_jax import cli
   results = _three_configurations()
   monkeypatch.setattr(protocol, "evaluate_runs", lambda runs, tasks, trials, **kw: dict(
@@ -365,14 +365,15 @@ def test_eval_cli_and_quickstart_print_and_write_every_table(tmp_path, monkeypat
   assert (tmp_path / "ev.md").read_text().count("| Method |") == 3
   assert (tmp_path / "ev.queries_paired.csv").read_text().startswith("method,seeds,J.P._mean")
   assert '"ACT+SkillPlug (num_skills=2)"' not in (tmp_path / "ev.csv").read_text()  # no comma: not quoted
-  # the quickstart merges its two workers' runs into one set of rows
+  # the pipeline (and so the quickstart) merges its jobs' runs into one set of rows
   act = [r for r in results if r["policy"] == "ACT"]
   sp = [r for r in results if r["train_seed"] == 0 and r["config"]["model.num_skills"] == 4 and r["policy"] != "ACT"]
   parts = [dict(pretrain=act, fewshot=act[:1]), dict(pretrain=sp, fewshot=sp[:1])]
-  text = quickstart.report(dict(
-      pretrain=quickstart.merged_summary(parts, "pretrain", TASKS2),
-      fewshot=quickstart.merged_summary(parts, "fewshot", TASKS2[:1]),
-      trials=4, demos=10, stages_s={"pretrain": 1.0}, runs=["a", "b"], wall_s=60.0, device="cpu"))
+  exp = dataclasses.asdict(configs.get("quick"))
+  text = pipeline.report(dict(
+      config="quick", experiment=exp, pretrain=pipeline.merged_summary(parts, "pretrain", TASKS2),
+      fewshot=pipeline.merged_summary(parts, "fewshot", TASKS2[:1]),
+      stages_s={"pretrain": 1.0}, runs=["a", "b"], wall_s=60.0, device="cpu", backend="mujoco"))
   assert text.count("| ACT+SkillPlug | ") == 6 and text.count("| ACT | ") == 6  # 3 tables x 2 stages
   assert "Trials every run solved: J.P. 3/4, D.O. 1/4" in text
 
@@ -393,12 +394,12 @@ def test_eval_cli_expands_seed_templates_and_rejects_bad_ones(capsys):
 def test_an_image_policy_on_another_renderer_is_warned_about(capsys):
   """MJX-Warp's ray caster and MuJoCo's OpenGL draw different pixels: evaluating
   an image policy on the other backend says so; a state policy is not warned about."""
-  images = dataclasses.replace(model_config.quick(), use_images=True)
+  images = dataclasses.replace(train_config.preset("quick").model, use_images=True)
   cfg = train_config.TrainConfig(preset="quick", model=images, backend="mjx-warp")
   protocol.warn_if_other_renderer("runs/img", cfg, "mujoco")
   err = capsys.readouterr().err
   assert "WARNING: runs/img is an image policy trained on warp-raycast images" in err
   assert "evaluated on mujoco-opengl images (mujoco backend)" in err
   protocol.warn_if_other_renderer("runs/img", cfg, "mjx-warp")
-  protocol.warn_if_other_renderer("runs/state", dataclasses.replace(cfg, model=model_config.quick()), "mujoco")
+  protocol.warn_if_other_renderer("runs/state", dataclasses.replace(cfg, model=train_config.preset("quick").model), "mujoco")
   assert capsys.readouterr().err == ""

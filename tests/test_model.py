@@ -18,10 +18,22 @@ import pytest
 import envs
 from skillplug_jax import losses
 from skillplug_jax.data import normalization
-from skillplug_jax.model import (GROUPS, ModelConfig, Policy, budget, masked_optimizer, paper,
-                                 param_groups, quick, trainable_mask)
+from experiments import configs
+from skillplug_jax.model import GROUPS, ModelConfig, Policy, masked_optimizer, param_groups, trainable_mask
 from skillplug_jax.model.act import ActionHead, CVAEEncoder, Encoder, num_tokens
 from skillplug_jax.model.config import LEGACY_DEFAULTS
+
+
+def paper() -> ModelConfig:
+  return configs.get("paper").train.model
+
+
+def budget() -> ModelConfig:
+  return configs.get("budget").train.model
+
+
+def quick() -> ModelConfig:
+  return configs.get("quick").train.model
 from skillplug_jax.model.interactor import INTERACTORS
 from skillplug_jax.model.posterior import TrajectorySkillPosterior
 from skillplug_jax.model.resnet import ResNet18

@@ -164,6 +164,6 @@ def test_incompatible_checkpoint_and_bad_overrides(data_dir, tmp_path):
     config.override(cfg, ["model.hiden=3"])
   with pytest.raises(ValueError, match="lr='fast'"):
     config.override(cfg, ["lr=fast"])
-  with pytest.raises(ValueError, match="unknown preset"):
+  with pytest.raises(ValueError, match="unknown config 'huge'"):
     config.preset("huge")
   assert config.override(cfg, ["loss.sd=0.5", "model.use_images=false"]).loss.sd == 0.5

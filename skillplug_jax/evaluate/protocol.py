@@ -36,7 +36,8 @@ def trial_keys(seed: int, trials: int) -> jax.Array:
 
 def evaluate_task(task: str, controller: Controller, trials: int, seed: int = EVAL_SEED, batch: int = 50,
                   render: bool = False, image_size=(64, 64), videos: int = 0,  # image_size: (H, W)
-                  video_dir: str | Path | None = None, backend: str = "auto") -> dict:
+                  video_dir: str | Path | None = None, backend: str = "auto",
+                  routing_file: str | Path | None = None) -> dict:
   """Success rate and query counts of one controller on one task.
 
   Besides the means, `trial_success` and `trial_queries` keep trial i's
@@ -46,6 +47,8 @@ def evaluate_task(task: str, controller: Controller, trials: int, seed: int = EV
   The batch is split over the local devices (GPUs only, when rendering: see
   `rollout.local_devices_for`). videos > 0 writes the side
   camera of the first `videos` trials to `video_dir/<task>_trialNN.gif`.
+  routing_file: write every query's routing weights there (`write_routing`;
+  ACT+SkillPlug only).
   """
   backend = envs.resolve_backend(backend)
   devices = local_devices_for(min(batch, trials), render=render or videos > 0, backend=backend)
@@ -72,6 +75,8 @@ def evaluate_task(task: str, controller: Controller, trials: int, seed: int = EV
   success, nan, queries = take("success"), take("nan"), take("queries")
   overflow = take("overflow") if all(p.overflow is not None for p in parts) else np.zeros(trials, np.int32)
   routing = [p.routing for p in parts if p.routing is not None]
+  if routing_file is not None and routing:
+    write_routing(routing_file, task, routing, trials, success, take("first_success_step"), queries)
   return dict(task=task, abbr=benv.env.abbr, trials=trials, seed=seed, devices=ndev, backend=backend,
               renderer=benv.renderer,
               success_rate=float(success.mean()), successes=int(success.sum()),
@@ -81,6 +86,38 @@ def evaluate_task(task: str, controller: Controller, trials: int, seed: int = EV
               mean_routing=(np.nanmean(np.concatenate([r.reshape(-1, r.shape[-1]) for r in routing]), axis=0)
                             .tolist() if routing else None),
               trial_success=success.tolist(), trial_queries=queries.tolist())
+
+
+def write_routing(path: str | Path, task: str, parts: Sequence[np.ndarray], trials: int, success: np.ndarray,
+                  first_success_step: np.ndarray, queries: np.ndarray) -> None:
+  """The router's weights at every query of every trial, with each trial's outcome (one .npz).
+
+  routing [trials, steps, K] float16: trial i's weights at control step t,
+  NaN where it made no query (every step after its episode ended, and
+  between queries with open-loop chunks); success [trials], first_success_step
+  [trials] (-1: none), queries [trials]; task, the task's name. Trial i is
+  the same initial state for every policy (`trial_keys`). Written atomically.
+  """
+  steps = max(p.shape[0] for p in parts)
+  padded = [np.pad(p, ((0, steps - p.shape[0]), (0, 0), (0, 0)), constant_values=np.nan) for p in parts]
+  routing = np.concatenate(padded, axis=1)[:, :trials].transpose(1, 0, 2).astype(np.float16)
+  path = Path(path)
+  path.parent.mkdir(parents=True, exist_ok=True)
+  tmp = path.with_name(path.name + ".tmp")
+  with open(tmp, "wb") as f:
+    np.savez_compressed(f, routing=routing, success=np.asarray(success, bool),
+                        first_success_step=np.asarray(first_success_step, np.int32),
+                        queries=np.asarray(queries, np.int32), task=np.asarray(task))
+  os.replace(tmp, path)
+
+
+def read_routing(path: str | Path) -> dict:
+  """`write_routing`'s arrays as a dict (routing as float32)."""
+  with np.load(path) as z:
+    out = {k: z[k] for k in z.files}
+  out["routing"] = out["routing"].astype(np.float32)
+  out["task"] = str(out["task"])
+  return out
 
 
 def _write_videos(frames: list, out: Path, task: str, fps: int = 20) -> None:

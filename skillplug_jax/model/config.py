@@ -1,7 +1,7 @@
-"""Model configuration: one frozen dataclass and three presets.
+"""Model configuration: one frozen dataclass whose defaults are the paper's model.
 
-Callers start from a preset and override fields with `dataclasses.replace`,
-so an experiment config names a preset plus the few numbers it changes.
+The presets (quick, cpu, budget, paper) are experiment configs in
+experiments/configs/: each names the few fields it changes.
 """
 
 from __future__ import annotations
@@ -88,31 +88,3 @@ class ModelConfig:
   @property
   def is_skillplug(self) -> bool:
     return self.policy == "skillplug"
-
-
-def paper() -> ModelConfig:
-  """The paper's ACT (DISCOVERSE part) plus SkillPlug with K=4."""
-  return ModelConfig()
-
-
-def budget() -> ModelConfig:
-  """Images at a quarter of the paper's cost, for short GPU budgets.
-
-  Half the width (256) cuts attention and FF cost about 4x; a backbone of
-  width 32 does the same for the ResNet, which dominates at 64x64 images.
-  The encoder keeps 4 layers because the plug reads its output tokens; the
-  decoder drops to 4 because ACT's 7 were effectively 1 (the first-layer bug),
-  so 4 used layers are still deeper than what ACT was tuned with. The CVAE
-  only summarises ~27 tokens into a latent held near the prior: 2 layers.
-  """
-  return dataclasses.replace(
-      paper(), hidden=256, heads=8, ff=1024, backbone_width=32,
-      enc_layers=4, dec_layers=4, cvae_enc_layers=2, alignment_dim=64)
-
-
-def quick() -> ModelConfig:
-  """State-only and small: seconds per step on a laptop CPU, for smoke runs."""
-  return dataclasses.replace(
-      paper(), use_images=False, hidden=64, heads=4, ff=256, enc_layers=2,
-      dec_layers=2, cvae_enc_layers=1, num_skills=4, skill_latent_dim=16,
-      alignment_dim=32)

@@ -14,14 +14,6 @@ import optax
 
 GROUPS = ("encoder", "cvae", "skills", "interactor", "router", "posterior", "action_head")
 
-# The paper's few-shot protocol: SkillPlug retrains router and action head,
-# vanilla ACT the action head only.
-FEWSHOT_TRAINABLE = {
-    "act": frozenset({"action_head"}),
-    "skillplug": frozenset({"router", "action_head"}),
-}
-
-
 def _groups_tree(params: Mapping[str, Any]) -> Mapping[str, Any]:
   """Accept either `variables` ({'params': ...}) or the params tree itself."""
   if set(params.keys()) == {"params"}:

@@ -1,4 +1,7 @@
-"""Training configuration: a frozen dataclass, three presets, command-line overrides.
+"""Training configuration: a frozen dataclass and command-line overrides.
+
+The presets are experiment configs (experiments/configs/NAME.py); `preset`
+reads one's training settings:
 
     cfg = preset("quick", policy="act")
     cfg = override(cfg, ["lr=3e-4", "model.hidden=128", "loss.sd=0.5"])
@@ -15,9 +18,12 @@ from skillplug_jax.model import config as model_config
 from skillplug_jax.model.config import ModelConfig
 
 
+LR_SCHEDULES = ("constant", "cosine")
+
+
 @dataclasses.dataclass(frozen=True)
 class TrainConfig:
-  preset: str
+  preset: str  # the experiment config these settings come from (rows are named against it)
   model: ModelConfig
   loss: LossWeights = LossWeights()
   # data: the dataset `skillplug demos` writes for these fields
@@ -33,6 +39,8 @@ class TrainConfig:
   weight_decay: float = 1e-4
   grad_clip: float = 1.0  # global-norm clipping (ACT: none); <= 0 turns it off
   warmup_steps: int = 0
+  # after warm-up: 'constant' (ACT), or 'cosine' (decays to 0 at the last step, for short budgets)
+  lr_schedule: str = "constant"
   epochs: float = 6000.0  # ACT epochs: one random timestep per episode each
   max_steps: int = 0  # > 0: train this many steps instead of `epochs`
   seed: int = 0
@@ -44,6 +52,10 @@ class TrainConfig:
   log_every: int = 50
   ckpt_every: int = 1000
   keep_checkpoints: int = 2
+
+  def __post_init__(self):
+    if self.lr_schedule not in LR_SCHEDULES:
+      raise ValueError(f"lr_schedule must be one of {LR_SCHEDULES}, got {self.lr_schedule!r}")
 
   @property
   def run_dir(self) -> Path:
@@ -58,19 +70,9 @@ class TrainConfig:
 
 
 def preset(name: str, policy: str = "skillplug") -> TrainConfig:
-  """paper: the paper's protocol. budget: about 10 minutes of one H100 (not
-  yet measured on one). quick: minutes on a 2-core CPU, state-only."""
-  if name == "paper":
-    return TrainConfig(preset=name, model=dataclasses.replace(model_config.paper(), policy=policy))
-  if name == "budget":
-    return TrainConfig(preset=name, model=dataclasses.replace(model_config.budget(), policy=policy),
-                       demos=100, batch_size=64, lr=3e-4, warmup_steps=500, max_steps=20_000,
-                       ckpt_every=2000)
-  if name == "quick":
-    return TrainConfig(preset=name, model=dataclasses.replace(model_config.quick(), policy=policy),
-                       demos=10, batch_size=32, lr=1e-3, warmup_steps=100, max_steps=1500,
-                       log_every=50, ckpt_every=500, weight_decay=1e-4)
-  raise ValueError(f"unknown preset {name!r}; valid presets: paper, budget, quick")
+  """The training settings of the experiment config `name` (experiments/configs/NAME.py)."""
+  from experiments import configs  # the configs import this module: load them when asked
+  return configs.get(name).train_config(policy, seed=0)
 
 
 def _parse(value: str, typ):

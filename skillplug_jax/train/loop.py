@@ -64,12 +64,20 @@ def load_data(cfg: TrainConfig, generate: bool = True, progress: bool = True) ->
                                          image_size=cfg.model.image_size)
 
 
-def optimizer(cfg: TrainConfig, params) -> optax.GradientTransformation:
+def learning_rate(cfg: TrainConfig, total_steps: int) -> optax.Schedule:
+  """Linear warm-up, then constant or a cosine decay to 0 at `total_steps`."""
+  warmup = max(cfg.warmup_steps, 0)
+  if cfg.lr_schedule == "cosine":
+    return optax.warmup_cosine_decay_schedule(0.0, cfg.lr, warmup, max(total_steps, warmup + 1))
+  if warmup == 0:
+    return optax.constant_schedule(cfg.lr)
+  return optax.join_schedules(
+      [optax.linear_schedule(0.0, cfg.lr, warmup), optax.constant_schedule(cfg.lr)], [warmup])
+
+
+def optimizer(cfg: TrainConfig, params, total_steps: int) -> optax.GradientTransformation:
   """AdamW after global-norm clipping; frozen groups get zero updates (optax mask)."""
-  lr = optax.join_schedules(
-      [optax.linear_schedule(0.0, cfg.lr, max(cfg.warmup_steps, 1)), optax.constant_schedule(cfg.lr)],
-      [max(cfg.warmup_steps, 1)]) if cfg.warmup_steps > 0 else cfg.lr
-  tx = optax.adamw(lr, weight_decay=cfg.weight_decay)
+  tx = optax.adamw(learning_rate(cfg, total_steps), weight_decay=cfg.weight_decay)
   if cfg.grad_clip > 0:
     tx = optax.chain(optax.clip_by_global_norm(cfg.grad_clip), tx)
   if cfg.trainable:
@@ -158,7 +166,7 @@ def train(cfg: TrainConfig, progress: bool = True, stop_after: int | None = None
     diffs = checkpoint.config_differences(src_cfg.model, cfg.model)
     if diffs:
       raise checkpoint.CheckpointError(f"{cfg.init_from} has a different model: {'; '.join(diffs)}")
-  tx = optimizer(cfg, params)
+  tx = optimizer(cfg, params, total)
   state = TrainState(jnp.zeros((), jnp.int32), params, tx.init(params))
   state = jax.device_put(state, replicated)
 

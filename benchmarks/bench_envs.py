@@ -1,6 +1,6 @@
 """Both physics backends side by side, and the wall time of a closed-loop evaluation on the C one.
 
-    make bench-envs          # or: python -m experiments.bench_envs --out results/bench_envs.json
+    make bench-envs          # or: python -m benchmarks.bench_envs --out results/bench_envs.json
 
 Why: the project runs its tasks on MuJoCo's C engine ("mujoco", `mujoco.batch`
 on the CPU's threads) or on MJX-Warp ("mjx-warp", for accelerators). This
@@ -110,7 +110,7 @@ def measure(task, backend, batch, cameras, steps, image_size):
 
 def untrained_controller():
   """An untrained ACT state policy (quick config) whose actions stay near the home pose."""
-  m = dataclasses.replace(model_config.quick(), policy="act")
+  m = dataclasses.replace(train_config.preset("quick").model, policy="act")
   params = loop.init_params(train_config.TrainConfig(preset="quick", model=m), jax.random.PRNGKey(0))
   stats = {"action": {"mean": list(robot.HOME_QPOS), "std": [0.01] * 7},
            "joint_pos": {"mean": [0.0] * 7, "std": [1.0] * 7}}
@@ -181,7 +181,7 @@ def main(argv=None):
              "unknown")
   out = dict(date=datetime.datetime.now().astimezone().isoformat(timespec="seconds"), cpu=cpu, cores=ncpu,
              jax=jax.__version__, mujoco=mujoco.__version__, jax_device=str(jax.devices()[0]),
-             command="python -m experiments.bench_envs " + " ".join(sys.argv[1:] if argv is None else argv),
+             command="python -m benchmarks.bench_envs " + " ".join(sys.argv[1:] if argv is None else argv),
              loadavg_before=[round(v, 2) for v in os.getloadavg()],
              settings=dict(steps_mujoco=args.steps, steps_mjx_warp=args.warp_steps, image_size=list(size),
                            action="robot.HOME_QPOS held", mjx_warp_render_batches=warp_render,

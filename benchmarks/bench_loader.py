@@ -1,7 +1,7 @@
 """Loader benchmark: batches/s of the chunked loader, on the host and onto the devices.
 
     make bench-loader DATASET=results/datasets/<name>
-    python -m experiments.bench_loader --dataset DIR --batches 16,256 --out results/bench_loader.json
+    python -m benchmarks.bench_loader --dataset DIR --batches 16,256 --out results/bench_loader.json
 
 Three numbers per batch size: `load_s` (decode the dataset once), `host_batches_per_s`
 (sampling and gathering numpy batches, one thread), and

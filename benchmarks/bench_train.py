@@ -1,6 +1,6 @@
 """Training and inference benchmark of ACT and ACT+SkillPlug, beside LeRobot's ACT.
 
-    make bench-train        # or: python -m experiments.bench_train --presets quick,paper --out results/bench_train.json
+    make bench-train        # or: python -m benchmarks.bench_train --presets quick,paper --out results/bench_train.json
     make bench-train REF_PYTHON=/path/to/lerobot-venv/bin/python   # LeRobot's ACT before and after ours
 
 Per preset and policy, each in its own process (so peak memory is its own):
@@ -62,7 +62,7 @@ def bench_one(preset: str, policy: str, batch: int, steps: int, infer_batches: t
   key = jax.random.PRNGKey(0)
   params = loop.init_params(cfg, key)
   n_params = sum(x.size for x in jax.tree.leaves(params))
-  tx = loop.optimizer(cfg, params)
+  tx = loop.optimizer(cfg, params, cfg.num_steps(1))
   state = jax.device_put(loop.TrainState(jnp.zeros((), jnp.int32), params, tx.init(params)), repl)
 
   def synthetic(size):
@@ -187,7 +187,7 @@ def main(argv=None):
   import jax
   result = dict(devices=[str(d) for d in jax.devices()], cpu=platform.processor() or platform.machine(),
                 cpu_count=os.cpu_count(), xla_flags=os.environ.get("XLA_FLAGS", ""),
-                jax=jax.__version__, command=" ".join([sys.executable, "-m", "experiments.bench_train"] + (argv or sys.argv[1:])),
+                jax=jax.__version__, command=" ".join([sys.executable, "-m", "benchmarks.bench_train"] + (argv or sys.argv[1:])),
                 results=rows, reference=refs)
   write_json_atomic(args.out, result)
   print(f"wrote {args.out}")

@@ -1,6 +1,6 @@
 """Side-camera pictures of every task's initial scene (docs/scenes/*.png).
 
-    make scenes        # or: python -m experiments.scene_pictures --out docs/scenes
+    make scenes        # or: python -m figures.scene_pictures --out docs/scenes
 
 The initial state comes from the task's own reset (seed 0, MJX-Warp); the
 picture is drawn with MuJoCo's OpenGL renderer (MUJOCO_GL=egl headless), at a

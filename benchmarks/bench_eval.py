@@ -1,7 +1,7 @@
 """Closed-loop evaluation benchmark: control steps/s with the policy in the loop vs the bare environment.
 
-    make bench-eval      # or: python -m experiments.bench_eval --batches 16,64 --out results/bench_eval.json
-    python -m experiments.bench_eval --presets budget --batches 512,1024   # on a GPU
+    make bench-eval      # or: python -m benchmarks.bench_eval --batches 16,64 --out results/bench_eval.json
+    python -m benchmarks.bench_eval --presets budget --batches 512,1024   # on a GPU
 
 Both numbers are environment control steps per second (batch x steps / time)
 at the same batch and task, on one backend (`--backend`). "bare" steps the

@@ -1,0 +1,1 @@
+"""Benchmarks: environment, loader, training and evaluation throughput (`make bench`), each writing JSON."""

@@ -1,0 +1,221 @@
+"""What the skills do, and whether the plug is more than ACT: probes of a pipeline's ACT+SkillPlug runs.
+
+    python -m experiments.skill_probes --config cpu --out results/paper_cpu --publish docs/results/paper_cpu
+
+For every training seed of the config's ACT+SkillPlug runs (found where
+`experiments.pipeline` put them under --out):
+
+1. closed loop on the pretraining tasks with the router's weights replaced:
+   `router` (its own), `uniform` (1/K each: what a router that learned
+   nothing would give) and `skill<k>` (one-hot: each skill alone). If
+   uniform and every one-hot match the router, the skills are
+   interchangeable and the library does nothing ACT could not;
+2. the skills' geometry, per task, on demonstration states: cosine
+   similarity of the skill embeddings s_k and of the interactor outputs u_k
+   (token-averaged), how far the u_k spread around their mean, how much the
+   fused feature h~ differs from the encoder's h, and linear CKA between
+   h~ and the same seed's ACT encoder output (1: the plug's feature is
+   ACT's feature up to a rotation and scale).
+
+Evaluations are cached beside each run (`<run>/eval/probe_<mode>_*.json`),
+so a killed probe resumes. Writes OUT/skill_probes.{json,md}.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+import envs
+from experiments import configs, pipeline
+from skillplug_jax.atomic_json import write_json_atomic, write_text_atomic
+from skillplug_jax.data import loader as data_loader
+from skillplug_jax.evaluate import protocol
+from skillplug_jax.evaluate.policy_controller import load_controller
+from skillplug_jax.model.policy import Policy
+from skillplug_jax.train import checkpoint, loop
+
+
+def modes(k: int) -> dict[str, tuple[float, ...] | None]:
+  out = {"router": None, "uniform": (1.0 / k,) * k}
+  out.update({f"skill{i}": tuple(float(i == j) for j in range(k)) for i in range(k)})
+  return out
+
+
+def closed_loop(run: Path, exp: configs.Experiment, tasks, k: int) -> dict:
+  """{mode: {task: success rate}} for every routing mode (cached per mode)."""
+  out = {}
+  for mode, weights in modes(k).items():
+    path = run / "eval" / f"probe_{mode}_trials{exp.trials}_seed{exp.eval_seed}.json"
+    if not path.exists():
+      controller, cfg = load_controller(run, routing=weights)
+      res = {}
+      for task in tasks:
+        r = protocol.evaluate_task(task, controller, exp.trials, exp.eval_seed, exp.eval_batch)
+        res[task] = dict(success_rate=r["success_rate"], trial_success=r["trial_success"])
+      write_json_atomic(path, res)
+    out[mode] = json.loads(path.read_text())
+  return out
+
+
+def _features(module: Policy, obs):
+  h, pos = module.encode(obs)
+  skills = module.skills()
+  u = module.interactor(h, jnp.broadcast_to(skills, (h.shape[0],) + skills.shape), True, pos)
+  r = module.router(h)
+  return h, u, r, module._fuse(r, u), skills
+
+
+def _cos(a, b):
+  a = a / np.linalg.norm(a, axis=-1, keepdims=True)
+  b = b / np.linalg.norm(b, axis=-1, keepdims=True)
+  return (a * b).sum(-1)
+
+
+def linear_cka(x: np.ndarray, y: np.ndarray) -> float:
+  """Linear CKA of two feature sets [n, d1], [n, d2] (Kornblith et al. 2019): 1 when one is
+  a rotation and scaling of the other, whatever their bases."""
+  x = x - x.mean(0)
+  y = y - y.mean(0)
+  hsic = np.linalg.norm(x.T @ y) ** 2
+  return float(hsic / (np.linalg.norm(x.T @ x) * np.linalg.norm(y.T @ y)))
+
+
+def demo_states(run: Path, tasks, per_episode: int = 4) -> dict[str, dict]:
+  """Observations of each task's demonstrations (`per_episode` evenly spaced timesteps of each)."""
+  cfg = checkpoint.read_config(run)
+  data = loop.load_data(cfg, generate=False, progress=False)
+  stats = checkpoint.read_stats(run)
+  import dataclasses
+  data = dataclasses.replace(data, stats=stats)
+  ld = data_loader.ChunkLoader(data, 1, chunk=cfg.model.chunk, normalize_object_state=cfg.model.normalize_object_state)
+  out = {}
+  for i, task in enumerate(data.tasks):
+    if task not in tasks:
+      continue
+    eps = np.flatnonzero(data.task_id == i)
+    ep = np.repeat(eps, per_episode)
+    frac = np.tile((np.arange(per_episode) + 0.5) / per_episode, len(eps))
+    t = np.floor(frac * data.length[ep]).astype(np.int64)
+    b = ld.gather(ep, t)
+    out[task] = {k: b[k] for k in ("joint_pos", "object_state")}
+  return out
+
+
+def geometry(run: Path, act_run: Path | None, tasks) -> dict:
+  """Per task: skill and interactor-output similarity, spread, and CKA against ACT's encoder."""
+  cfg, params, _ = loop.load_params(run)
+  policy = Policy(cfg.model)
+  feats = jax.jit(lambda p, o: policy.apply({"params": p}, o, method=_features))
+  act = None
+  if act_run is not None:
+    acfg, aparams, _ = loop.load_params(act_run)
+    apolicy = Policy(acfg.model)
+    act = (jax.jit(lambda p, o: apolicy.apply({"params": p}, o, method=Policy.encode)[0]), aparams)
+  states = demo_states(run, tasks)
+  out = {}
+  skills = None
+  for task, obs in states.items():
+    h, u, r, fused, skills = map(np.asarray, feats(params, obs))
+    um = u.mean(axis=2)  # [B, K, D] token-averaged u_k
+    k = um.shape[1]
+    sim = np.array([[_cos(um[:, a], um[:, b]).mean() for b in range(k)] for a in range(k)])
+    centre = um.mean(axis=1, keepdims=True)
+    spread = float((np.linalg.norm(um - centre, axis=-1) / np.linalg.norm(centre, axis=-1)).mean())
+    row = dict(interactor_cosine=sim.round(4).tolist(),
+               interactor_offdiag_cosine=float(sim[~np.eye(k, dtype=bool)].mean()),
+               interactor_spread=spread,
+               fused_vs_encoder_cosine=float(_cos(fused.reshape(-1, fused.shape[-1]), h.reshape(-1, h.shape[-1])).mean()),
+               fused_vs_mean_u_cosine=float(_cos(fused.reshape(-1, fused.shape[-1]),
+                                                 u.mean(axis=1).reshape(-1, fused.shape[-1])).mean()),
+               router_mean=r.mean(0).tolist(), states=int(h.shape[0]))
+    if act is not None:
+      ha = np.asarray(act[0](act[1], obs))
+      row["cka_fused_vs_act"] = linear_cka(fused.reshape(fused.shape[0], -1), ha.reshape(ha.shape[0], -1))
+      row["cka_encoder_vs_act"] = linear_cka(h.reshape(h.shape[0], -1), ha.reshape(ha.shape[0], -1))
+    out[task] = row
+  emb = np.asarray(skills)
+  k = emb.shape[0]
+  esim = np.array([[_cos(emb[a], emb[b]) for b in range(k)] for a in range(k)])
+  return dict(tasks=out, skill_cosine=esim.round(4).tolist(),
+              skill_offdiag_cosine=float(esim[~np.eye(k, dtype=bool)].mean()))
+
+
+def report(result: dict) -> str:
+  tasks = result["tasks"]
+  abbr = [envs.task_class(t).abbr for t in tasks]
+  seeds = sorted(result["seeds"], key=int)
+  lines = [f"Closed-loop success (%) of ACT+SkillPlug with the router's weights replaced; mean ± SE over "
+           f"seeds {', '.join(seeds)}, {result['trials']} paired trials per task:", "",
+           "| routing | " + " | ".join(abbr) + " | Avg. |", "|---|" + "---|" * (len(abbr) + 1)]
+  from skillplug_jax.evaluate.tables import mean_se
+
+  def cell(v):
+    m, se = mean_se(v)
+    return f"{m:.1f}" if se is None else f"{m:.1f}±{se:.1f}"
+
+  for mode in result["modes"]:
+    per = [[100 * result["seeds"][s]["closed_loop"][mode][t]["success_rate"] for s in seeds] for t in tasks]
+    avg = [float(np.mean([per[i][j] for i in range(len(tasks))])) for j in range(len(seeds))]
+    lines.append(f"| {mode} | " + " | ".join(cell(v) for v in per) + f" | {cell(avg)} |")
+  lines += ["", "Skill geometry on demonstration states (mean over seeds; per task in the JSON):", "",
+            "| seed | skill cos (off-diag) | u_k cos (off-diag) | u_k spread | cos(h~, h) | cos(h~, mean u) | CKA(h~, ACT h) | CKA(h, ACT h) |",
+            "|---|---|---|---|---|---|---|---|"]
+  for s in seeds:
+    g = result["seeds"][s]["geometry"]
+    m = lambda key: float(np.mean([g["tasks"][t][key] for t in g["tasks"]])) if all(key in g["tasks"][t] for t in g["tasks"]) else float("nan")  # noqa: E731
+    lines.append(f"| {s} | {g['skill_offdiag_cosine']:.3f} | {m('interactor_offdiag_cosine'):.3f} | "
+                 f"{m('interactor_spread'):.3f} | {m('fused_vs_encoder_cosine'):.3f} | {m('fused_vs_mean_u_cosine'):.3f} | "
+                 f"{m('cka_fused_vs_act'):.3f} | {m('cka_encoder_vs_act'):.3f} |")
+  return "\n".join(lines)
+
+
+def main(argv=None) -> int:
+  p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+  p.add_argument("--config", default="cpu")
+  p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE")
+  p.add_argument("--out", default="", help="the pipeline's output folder (default results/<config>)")
+  p.add_argument("--publish", default="", help="also copy skill_probes.{json,md} here")
+  args = p.parse_args(argv)
+  envs.quiet_warp()
+  try:
+    exp = configs.get(args.config, args.set)
+    out = Path(args.out or f"results/{args.config}")
+    tasks = pipeline.tasks_of(exp.train.taskset)
+    result = dict(config=args.config, trials=exp.trials, eval_seed=exp.eval_seed, tasks=list(tasks), seeds={},
+                  device=str(jax.devices()[0]))
+    t0 = time.time()
+    for seed in exp.seeds:
+      run = pipeline.pretrain_config(exp, "skillplug", seed, out).run_dir
+      act_run = pipeline.pretrain_config(exp, "act", seed, out).run_dir
+      if not (run / "config.json").exists():
+        raise ValueError(f"{run} does not exist: run the pipeline first (python -m experiments.pipeline "
+                         f"--config {args.config} --out {out})")
+      k = checkpoint.read_config(run).model.num_skills
+      result["modes"] = list(modes(k))
+      print(f"[probes] seed {seed}: closed loop with {len(modes(k))} routings ...", file=sys.stderr, flush=True)
+      result["seeds"][str(seed)] = dict(
+          run=str(run), closed_loop=closed_loop(run, exp, tasks, k),
+          geometry=geometry(run, act_run if (act_run / "config.json").exists() else None, tasks))
+    result["wall_s"] = round(time.time() - t0, 1)
+  except (ValueError, RuntimeError) as e:
+    print(f"skill_probes: error: {e}", file=sys.stderr)
+    return 2 if isinstance(e, ValueError) else 1
+  text = report(result)
+  print(text)
+  for dest in [out] + ([Path(args.publish)] if args.publish else []):
+    write_json_atomic(dest / "skill_probes.json", result)
+    write_text_atomic(dest / "skill_probes.md", text + "\n")
+  print(f"wrote {out / 'skill_probes.md'} and .json")
+  return 0
+
+
+if __name__ == "__main__":
+  sys.exit(main())

@@ -1,0 +1,1 @@
+"""Picture scripts: figures of the scenes and results for the README and docs."""

@@ -1,0 +1,55 @@
+"""Execute the notebooks, in place (as they are committed) or into memory (the tests).
+
+    make notebooks                                    # on docs/results/paper_cpu
+    python notebooks/execute.py --results DIR a.ipynb # on another published pipeline run
+
+A notebook reads the folder `python -m experiments.pipeline --publish DIR`
+writes; SKILLPLUG_RESULTS tells it which.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+from pathlib import Path
+
+import nbformat
+from nbclient import NotebookClient
+
+HERE = Path(__file__).resolve().parent
+NOTEBOOKS = ("success_tables.ipynb", "routing.ipynb")
+
+
+def execute(path: str | Path, results: str | Path | None = None, timeout: int = 600):
+  """The executed notebook (nbformat node); raises nbclient's CellExecutionError on a failing cell."""
+  path = Path(path)
+  nb = nbformat.read(path, as_version=4)
+  env = dict(os.environ)
+  if results is not None:
+    os.environ["SKILLPLUG_RESULTS"] = str(Path(results).resolve())  # the kernel inherits this process's env
+  try:
+    NotebookClient(nb, timeout=timeout, kernel_name="python3",
+                   resources={"metadata": {"path": str(path.parent)}}).execute()
+  finally:
+    os.environ.clear()
+    os.environ.update(env)
+  return nb
+
+
+def main(argv=None) -> int:
+  p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+  p.add_argument("notebooks", nargs="*", help=f"default: {', '.join(NOTEBOOKS)}")
+  p.add_argument("--results", default=None, help="published pipeline folder (default: each notebook's own)")
+  args = p.parse_args(argv)
+  for name in args.notebooks or [HERE / n for n in NOTEBOOKS]:
+    nb = execute(name, args.results)
+    tmp = Path(str(name) + ".tmp")
+    nbformat.write(nb, tmp)
+    os.replace(tmp, name)
+    print(f"executed {name}")
+  return 0
+
+
+if __name__ == "__main__":
+  sys.exit(main())

@@ -1,0 +1,221 @@
+"""Experiment configs and the pipeline that runs them: loading, overrides, the few-shot
+protocol they carry, a whole (tiny) protocol end to end, resuming it, and its routing arrays."""
+
+import dataclasses
+import json
+
+import numpy as np
+import optax
+import pytest
+
+from experiments import configs, pipeline
+from skillplug_jax import fewshot
+from skillplug_jax.evaluate import protocol
+from skillplug_jax.train import config as train_config
+from skillplug_jax.train import loop
+
+
+def test_every_config_loads_names_its_command_and_its_preset():
+  assert {"quick", "cpu", "budget", "paper"} <= set(configs.names())
+  for name in configs.names():
+    exp = configs.get(name)
+    assert exp.command, name  # the docstring's first line: how to run it
+    assert exp.train.preset in configs.names(), name
+    # a preset's training settings are what `skillplug pretrain --config NAME` trains
+    base = configs.get(exp.train.preset)
+    assert train_config.preset(exp.train.preset, "act") == base.train_config("act", 0)
+  assert configs.get("paper").train.model.hidden == 512 and configs.get("paper").fewshot.steps == 0
+  assert configs.get("quick").fewshot.steps == 500 and configs.get("quick").trials == 10
+  cpu = configs.get("cpu")
+  assert not cpu.train.model.use_images and cpu.seeds == (0, 1, 2) and cpu.trials == 50
+
+
+def test_overrides_reach_every_level_and_bad_ones_are_named():
+  exp = configs.get("cpu", ["seeds=0,1", "train.model.hidden=32", "train.lr=3e-4", "fewshot.steps=7",
+                            "fewshot.trainable_skillplug=router", "run_fewshot=false"])
+  assert exp.seeds == (0, 1) and exp.train.model.hidden == 32 and exp.train.lr == 3e-4
+  assert exp.fewshot.steps == 7 and exp.fewshot.trainable("skillplug") == ("router",)
+  assert exp.fewshot.trainable("act") == ("action_head",) and not exp.run_fewshot
+  cfg = exp.train_config("act", 2)
+  assert (cfg.model.policy, cfg.seed, cfg.model.hidden) == ("act", 2, 32)
+  with pytest.raises(ValueError, match="unknown config 'cpuu'.*quick"):
+    configs.get("cpuu")
+  with pytest.raises(ValueError, match="unknown setting 'train.model.hiden'"):
+    configs.get("cpu", ["train.model.hiden=3"])
+  with pytest.raises(ValueError, match="unknown config 'huge'"):
+    train_config.preset("huge")
+  with pytest.raises(ValueError, match="lr_schedule must be one of"):
+    dataclasses.replace(exp.train, lr_schedule="linear")
+
+
+def test_fewshot_protocol_comes_from_the_source_runs_config(tmp_path):
+  quick = train_config.preset("quick", "skillplug")
+  few = fewshot.fewshot_config(quick, tmp_path / "src", "block_place", "discoverse_fewshot4", 10)
+  assert (few.max_steps, few.trainable) == (500, ("action_head", "router"))
+  act = fewshot.fewshot_config(train_config.preset("quick", "act"), tmp_path / "src", "block_place",
+                               "discoverse_fewshot4", 10)
+  assert act.trainable == ("action_head",) and act.init_from == str(tmp_path / "src")
+  gone = dataclasses.replace(quick, preset="removed_config")
+  with pytest.raises(ValueError, match="'removed_config' is not in experiments/configs"):
+    fewshot.fewshot_config(gone, tmp_path / "src", "block_place", "discoverse_fewshot4", 10)
+  # explicit settings need no config
+  mine = fewshot.fewshot_config(gone, tmp_path / "src", "block_place", "discoverse_fewshot4", 10, steps=3,
+                                trainable=("router",))
+  assert (mine.max_steps, mine.trainable) == (3, ("router",))
+
+
+def test_cosine_schedule_warms_up_then_decays_to_zero():
+  cfg = train_config.override(train_config.preset("quick"), ["lr=1e-3", "warmup_steps=10", "lr_schedule=cosine"])
+  lr = loop.learning_rate(cfg, 110)
+  assert float(lr(0)) == 0.0 and float(lr(10)) == pytest.approx(1e-3)
+  assert float(lr(60)) == pytest.approx(5e-4, rel=1e-3) and float(lr(110)) == pytest.approx(0.0, abs=1e-9)
+  const = loop.learning_rate(dataclasses.replace(cfg, lr_schedule="constant"), 110)
+  assert float(const(5)) == pytest.approx(5e-4) and float(const(100)) == pytest.approx(1e-3)
+  assert isinstance(loop.optimizer(cfg, {"w": np.zeros(2)}, 110), optax.GradientTransformation)
+
+
+TINY = ["train.taskset=jujube_pick,drawer_open", "train.demos=2", "train.max_steps=4", "train.batch_size=4",
+        "train.warmup_steps=1", "train.log_every=2", "train.ckpt_every=2", "train.model.hidden=32",
+        "train.model.heads=2", "train.model.ff=64", "train.model.enc_layers=1", "train.model.dec_layers=1",
+        "train.model.num_skills=3", "train.model.skill_latent_dim=8", "train.model.alignment_dim=16",
+        "train.model.chunk=10", "trials=3", "eval_batch=3", "fewshot.taskset=mouse_push", "fewshot.demos=2",
+        "fewshot.steps=2", "workers=1"]
+
+
+@pytest.fixture(scope="module")
+def tiny_run(tmp_path_factory):
+  """The quick config at a smoke size through the whole pipeline, published for the notebooks."""
+  out = tmp_path_factory.mktemp("pipeline")
+  exp = configs.get("quick", TINY)
+  summary = pipeline.run(exp, out)
+  pipeline.publish(summary, pipeline.report(summary), out / "published")
+  return exp, out, summary
+
+
+def test_pipeline_runs_the_protocol_and_writes_routing_arrays(tiny_run):
+  _, out, summary = tiny_run
+  pre, few = summary["pretrain"], summary["fewshot"]
+  assert list(pre["rows"]) == ["ACT+SkillPlug", "ACT"] and pre["rows"]["ACT"]["seeds"] == [0]
+  assert pre["table"]["tasks"] == ["jujube_pick", "drawer_open"] and few["table"]["tasks"] == ["mouse_push"]
+  assert len(pre["results"]) == 4 and len(few["results"]) == 2
+  sp = [r for r in pre["results"] if r["policy"] == "ACT+SkillPlug"]
+  for r in sp:  # every query's weights, trial by trial, beside the outcome
+    z = protocol.read_routing(r["routing_file"])
+    assert z["task"] == r["task"] and z["routing"].shape[0] == 3 and z["routing"].shape[2] == 3
+    assert z["success"].tolist() == r["trial_success"] and z["queries"].tolist() == r["trial_queries"]
+    queried = ~np.isnan(z["routing"][..., 0])
+    assert (queried.sum(axis=1) == z["queries"]).all()  # one row per query, NaN elsewhere
+    np.testing.assert_allclose(z["routing"][queried].sum(-1), 1.0, atol=2e-3)  # float16 on disk
+    np.testing.assert_allclose(np.nanmean(z["routing"].reshape(-1, 3), axis=0), r["mean_routing"], atol=2e-3)
+  assert all(r["routing_file"] is None for r in pre["results"] if r["policy"] == "ACT")
+  few_sp = next(r for r in few["results"] if r["policy"] == "ACT+SkillPlug")
+  assert few_sp["trainable"] == ["action_head", "router"] and few_sp["steps"] == 2
+  assert few_sp["source"].endswith("jujube_pick,drawer_open_skillplug_quick_seed0")
+  text = pipeline.report(summary)
+  assert text.count("| ACT+SkillPlug |") == 6 and "Wall time:" in text
+  assert "ACT+SkillPlug minus ACT, success points, multi-task: J.P. " in text
+  # published: the summary, and the routing arrays with an index (ACT+SkillPlug only)
+  index = json.loads((out / "published" / "routing" / "index.json").read_text())
+  assert sorted((e["stage"], e["task"]) for e in index) == [("fewshot", "mouse_push"), ("pretrain", "drawer_open"),
+                                                            ("pretrain", "jujube_pick")]
+  for e in index:
+    assert (out / "published" / "routing" / e["file"]).exists() and e["policy"] == "ACT+SkillPlug"
+  published = json.loads((out / "published" / "summary.json").read_text())
+  assert published["pretrain"]["table"] == json.loads(json.dumps(pre["table"]))  # tuples as JSON lists
+
+
+def test_pipeline_resumes_without_training_or_evaluating_again(tiny_run, monkeypatch):
+  exp, out, summary = tiny_run
+  monkeypatch.setattr(protocol, "evaluate_task", lambda *a, **k: pytest.fail("evaluated again"))
+  again = pipeline.run(exp, out)
+  assert again["pretrain"]["table"] == summary["pretrain"]["table"]
+  assert again["fewshot"]["table"] == summary["fewshot"]["table"]
+  assert all(loop.load_params(r["run"])[2] == 4 for r in summary["pretrain"]["results"])
+
+
+@pytest.mark.parametrize("name", ["success_tables.ipynb", "routing.ipynb"])
+def test_notebooks_execute_on_a_published_run(tiny_run, name):
+  """The committed notebooks run top to bottom on a (smoke-size) published pipeline run and draw."""
+  import importlib.util
+  from pathlib import Path
+  root = Path(__file__).resolve().parents[1] / "notebooks"
+  spec = importlib.util.spec_from_file_location("nb_execute", root / "execute.py")
+  mod = importlib.util.module_from_spec(spec)
+  spec.loader.exec_module(mod)
+  nb = mod.execute(root / name, tiny_run[1] / "published")
+  outputs = [o for c in nb.cells if c.cell_type == "code" for o in c.outputs]
+  assert not [o for o in outputs if o.output_type == "error"]
+  assert sum("image/png" in o.get("data", {}) for o in outputs) >= 2
+  printed = "".join(o.get("text", "") for o in outputs)
+  assert "config 'quick'" in printed
+
+
+def test_pipeline_cli_rejects_bad_configs(capsys):
+  assert pipeline.main(["--config", "nope"]) == 2
+  assert "unknown config 'nope'" in capsys.readouterr().err
+  assert pipeline.main(["--config", "quick", "--set", "seeds="]) == 2
+  assert "seeds and policies must be non-empty" in capsys.readouterr().err
+
+
+def test_routing_statistics_tell_uniform_from_specialised(tmp_path):
+  from skillplug_jax.evaluate import routing
+  nan = np.full((2, 5, 4), np.nan, np.float32)
+  uniform = nan.copy()
+  uniform[:, :3] = 0.25  # 3 queries per trial, then the episode ended
+  onehot = nan.copy()
+  onehot[0, :4] = [0, 1, 0, 0]
+  onehot[1, :2] = [[1, 0, 0, 0], [0, 0, 1, 0]]  # switches skill within the episode
+  paths = []
+  for name, arr in (("uniform", uniform), ("onehot", onehot)):
+    paths.append(tmp_path / f"{name}.npz")
+    protocol.write_routing(paths[-1], name, [arr.transpose(1, 0, 2)], 2, np.array([True, False]),
+                           np.array([2, -1]), (~np.isnan(arr[..., 0])).sum(1))
+  u, o = routing.summarise_files(paths)
+  assert u["queries"] == 6 and o["queries"] == 6
+  assert u["entropy_frac"] == pytest.approx(1.0, abs=1e-3) and u["within_episode_std"] == pytest.approx(0.0)
+  assert o["entropy"] == pytest.approx(0.0, abs=1e-6) and o["max_weight"] == 1.0
+  assert o["within_episode_std"] > 0.1 and o["entropy_of_mean"] > o["entropy"]
+  assert o["mean_weights_success"] == [0, 1, 0, 0] and o["mean_weights_failure"] == [0.5, 0, 0.5, 0]
+  d = routing.between_task_distance([u, o])
+  # mean weights: uniform 1/4 each; one-hot 6 queries: [1, 4, 1, 0] / 6
+  assert d[0, 0] == 0 and d[0, 1] == pytest.approx(0.5 * (2 * (0.25 - 1 / 6) + (4 / 6 - 0.25) + 0.25))
+
+
+def test_linear_cka_is_one_for_rotations_and_low_for_unrelated_features():
+  from experiments.skill_probes import linear_cka
+  rng = np.random.default_rng(0)
+  x = rng.normal(size=(200, 8))
+  q, _ = np.linalg.qr(rng.normal(size=(8, 8)))
+  assert linear_cka(x, 3.0 * x @ q) == pytest.approx(1.0)
+  assert linear_cka(x, rng.normal(size=(200, 5))) < 0.2
+
+
+def test_skill_probes_replace_the_routing_and_measure_the_skills(tiny_run, capsys):
+  from experiments import skill_probes
+  _, out, summary = tiny_run
+  args = ["--config", "quick", "--out", str(out)] + [a for o in TINY for a in ("--set", o)]
+  assert skill_probes.main(args) == 0
+  result = json.loads((out / "skill_probes.json").read_text())
+  assert result["modes"] == ["router", "uniform", "skill0", "skill1", "skill2"]
+  probe = result["seeds"]["0"]
+  # the router's own weights are the pipeline's evaluation again: the same trials, the same outcomes
+  for r in summary["pretrain"]["results"]:
+    if r["policy"] == "ACT+SkillPlug":
+      assert probe["closed_loop"]["router"][r["task"]]["trial_success"] == r["trial_success"]
+  g = probe["geometry"]
+  assert np.allclose(np.diag(g["skill_cosine"]), 1.0, atol=1e-4)
+  for task, row in g["tasks"].items():
+    assert np.allclose(np.diag(row["interactor_cosine"]), 1.0, atol=1e-4) and row["states"] == 8  # 2 demos x 4
+    assert 0.0 < row["cka_fused_vs_act"] <= 1.0 + 1e-6 and row["interactor_spread"] >= 0.0
+    assert sum(row["router_mean"]) == pytest.approx(1.0, abs=1e-5)
+  assert "| uniform |" in capsys.readouterr().out
+
+
+def test_comparison_gives_the_difference_and_its_standard_error():
+  table = {"tasks": ["jujube_pick"], "abbr": ["J.P."], "rows": {
+      "ACT": {"cells": {"jujube_pick": (50.0, 3.0), "Avg.": (50.0, 3.0)}},
+      "ACT+SkillPlug": {"cells": {"jujube_pick": (58.0, 4.0), "Avg.": (58.0, None)}}}}
+  line = pipeline.comparison(table, "multi-task")
+  assert line == "ACT+SkillPlug minus ACT, multi-task: J.P. +8.0 ± 5.0 (+1.6 SE), Avg. +8.0"
+  del table["rows"]["ACT"]
+  assert pipeline.comparison(table, "multi-task") == ""
