@@ -103,8 +103,9 @@ def job(exp: configs.Experiment, policy: str, seed: int, out: Path) -> dict:
       few = fewshot.fewshot_config(source, run, task, exp.fewshot.taskset, exp.fewshot.demos,
                                    steps=exp.fewshot.steps, trainable=exp.fewshot.trainable(policy))
       few_run = loop.train(few, progress=False)
-      adapted += evaluated(few_run, [task], exp, task, source,
-                           extra=dict(source=str(run), trainable=list(few.trainable), steps=few.max_steps))
+      steps = few.num_steps(exp.fewshot.demos)  # the dataset holds `demos` episodes of the task
+      results = evaluated(few_run, [task], exp, task, source, extra=dict(source=str(run)))
+      adapted += [dict(r, trainable=list(few.trainable), steps=steps) for r in results]
     stage("few-shot adapt + evaluate", t0)
   return dict(run=str(run), pretrain=pretrain, fewshot=adapted, stages_s=stages)
 
@@ -201,6 +202,11 @@ def comparison(table: dict, stage: str) -> str:
   return f"ACT+SkillPlug minus ACT, {stage}: " + ", ".join(parts)
 
 
+def _fewshot_steps(summary: dict) -> str:
+  steps = sorted({r["steps"] for r in summary["fewshot"]["results"] if r.get("steps") is not None})
+  return "/".join(map(str, steps)) or str(summary["experiment"]["fewshot"]["steps"])
+
+
 def report(summary: dict) -> str:
   exp = summary["experiment"]
   t, d, seeds = exp["trials"], exp["train"]["demos"], exp["seeds"]
@@ -211,8 +217,8 @@ def report(summary: dict) -> str:
   if "fewshot" in summary:
     fs = exp["fewshot"]
     lines += ["Few-shot on the unseen tasks:", "",
-              tables.report(summary["fewshot"], f"{fs['demos']} demos, {fs['steps']} fine-tuning steps, "
-                            f"{t} paired trials"), "",
+              tables.report(summary["fewshot"], f"{fs['demos']} demos, {_fewshot_steps(summary)} fine-tuning "
+                            f"steps, {t} paired trials"), "",
               comparison(summary["fewshot"]["table"], "success points, few-shot"), ""]
   lines += ["Stages (s): " + ", ".join(f"{k} {v:.0f}" for k, v in summary["stages_s"].items()),
             f"Runs: {', '.join(summary['runs'])}",

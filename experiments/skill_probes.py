@@ -49,16 +49,27 @@ def modes(k: int) -> dict[str, tuple[float, ...] | None]:
   return out
 
 
-def closed_loop(run: Path, exp: configs.Experiment, tasks, k: int) -> dict:
-  """{mode: {task: success rate}} for every routing mode (cached per mode)."""
+def closed_loop(run: Path, exp: configs.Experiment, tasks, k: int, videos: int = 0,
+                video_dir: Path | None = None) -> dict:
+  """{mode: {task: success rate}} for every routing mode (cached per mode).
+
+  videos > 0: GIFs of the side camera of each task's first `videos` trials
+  in every mode, video_dir/<mode>/<task>_trialNN.gif (written when a mode is
+  evaluated, not when it is read back)."""
   out = {}
+  own = run / "eval" / f"{exp.train.taskset}_trials{exp.trials}_seed{exp.eval_seed}.json"  # the pipeline's
   for mode, weights in modes(k).items():
     path = run / "eval" / f"probe_{mode}_trials{exp.trials}_seed{exp.eval_seed}.json"
+    if mode == "router" and own.exists() and not videos:
+      out[mode] = {r["task"]: dict(success_rate=r["success_rate"], trial_success=r["trial_success"])
+                   for r in json.loads(own.read_text())["results"]}
+      continue
     if not path.exists():
       controller, cfg = load_controller(run, routing=weights)
       res = {}
       for task in tasks:
-        r = protocol.evaluate_task(task, controller, exp.trials, exp.eval_seed, exp.eval_batch)
+        r = protocol.evaluate_task(task, controller, exp.trials, exp.eval_seed, exp.eval_batch, videos=videos,
+                                   video_dir=None if video_dir is None else video_dir / mode)
         res[task] = dict(success_rate=r["success_rate"], trial_success=r["trial_success"])
       write_json_atomic(path, res)
     out[mode] = json.loads(path.read_text())
@@ -183,6 +194,9 @@ def main(argv=None) -> int:
   p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE")
   p.add_argument("--out", default="", help="the pipeline's output folder (default results/<config>)")
   p.add_argument("--publish", default="", help="also copy skill_probes.{json,md} here")
+  p.add_argument("--videos", type=int, default=0,
+                 help="GIFs of each task's first N trials in every routing mode, for the first seed "
+                      "(OUT/probe_videos/seed<S>/<mode>/<task>_trialNN.gif; only for modes not yet cached)")
   args = p.parse_args(argv)
   envs.quiet_warp()
   try:
@@ -202,7 +216,9 @@ def main(argv=None) -> int:
       result["modes"] = list(modes(k))
       print(f"[probes] seed {seed}: closed loop with {len(modes(k))} routings ...", file=sys.stderr, flush=True)
       result["seeds"][str(seed)] = dict(
-          run=str(run), closed_loop=closed_loop(run, exp, tasks, k),
+          run=str(run),
+          closed_loop=closed_loop(run, exp, tasks, k, videos=args.videos if seed == exp.seeds[0] else 0,
+                                  video_dir=out / "probe_videos" / f"seed{seed}"),
           geometry=geometry(run, act_run if (act_run / "config.json").exists() else None, tasks))
     result["wall_s"] = round(time.time() - t0, 1)
   except (ValueError, RuntimeError) as e:

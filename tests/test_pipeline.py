@@ -3,6 +3,7 @@ protocol they carry, a whole (tiny) protocol end to end, resuming it, and its ro
 
 import dataclasses
 import json
+from pathlib import Path
 
 import numpy as np
 import optax
@@ -114,6 +115,7 @@ def test_pipeline_runs_the_protocol_and_writes_routing_arrays(tiny_run):
   text = pipeline.report(summary)
   assert text.count("| ACT+SkillPlug |") == 6 and "Wall time:" in text
   assert "ACT+SkillPlug minus ACT, success points, multi-task: J.P. " in text
+  assert "2 demos, 2 fine-tuning steps, 3 paired trials" in text
   # published: the summary, and the routing arrays with an index (ACT+SkillPlug only)
   index = json.loads((out / "published" / "routing" / "index.json").read_text())
   assert sorted((e["stage"], e["task"]) for e in index) == [("fewshot", "mouse_push"), ("pretrain", "drawer_open"),
@@ -198,10 +200,20 @@ def test_skill_probes_replace_the_routing_and_measure_the_skills(tiny_run, capsy
   result = json.loads((out / "skill_probes.json").read_text())
   assert result["modes"] == ["router", "uniform", "skill0", "skill1", "skill2"]
   probe = result["seeds"]["0"]
-  # the router's own weights are the pipeline's evaluation again: the same trials, the same outcomes
-  for r in summary["pretrain"]["results"]:
-    if r["policy"] == "ACT+SkillPlug":
-      assert probe["closed_loop"]["router"][r["task"]]["trial_success"] == r["trial_success"]
+  # the router's own weights: the pipeline's evaluation, read back; evaluated again without it,
+  # the same trials give the same outcomes
+  sp = [r for r in summary["pretrain"]["results"] if r["policy"] == "ACT+SkillPlug"]
+  for r in sp:
+    assert probe["closed_loop"]["router"][r["task"]]["trial_success"] == r["trial_success"]
+  run = Path(sp[0]["run"])
+  exp = configs.get("quick", TINY)
+  own = run / "eval" / f"{exp.train.taskset}_trials{exp.trials}_seed{exp.eval_seed}.json"
+  own.rename(own.with_suffix(".aside"))
+  try:
+    again = skill_probes.closed_loop(run, exp, [sp[0]["task"]], 3)
+  finally:
+    own.with_suffix(".aside").rename(own)
+  assert again["router"][sp[0]["task"]]["trial_success"] == sp[0]["trial_success"]
   g = probe["geometry"]
   assert np.allclose(np.diag(g["skill_cosine"]), 1.0, atol=1e-4)
   for task, row in g["tasks"].items():
