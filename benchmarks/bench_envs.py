@@ -58,7 +58,6 @@ from envs import robot, rollout  # noqa: E402
 from skillplug_jax.atomic_json import write_json_atomic  # noqa: E402
 from skillplug_jax.evaluate.policy_controller import policy_controller  # noqa: E402
 from skillplug_jax.evaluate.protocol import evaluate_task  # noqa: E402
-from skillplug_jax.model import config as model_config  # noqa: E402
 from skillplug_jax.train import config as train_config  # noqa: E402
 from skillplug_jax.train import loop  # noqa: E402
 

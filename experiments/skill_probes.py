@@ -24,6 +24,7 @@ so a killed probe resumes. Writes OUT/skill_probes.{json,md}.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import sys
 import time
@@ -38,6 +39,7 @@ from experiments import configs, pipeline
 from skillplug_jax.atomic_json import write_json_atomic, write_text_atomic
 from skillplug_jax.data import loader as data_loader
 from skillplug_jax.evaluate import protocol
+from skillplug_jax.evaluate.tables import mean_se
 from skillplug_jax.evaluate.policy_controller import load_controller
 from skillplug_jax.model.policy import Policy
 from skillplug_jax.train import checkpoint, loop
@@ -103,9 +105,7 @@ def demo_states(run: Path, tasks, per_episode: int = 4) -> dict[str, dict]:
   """Observations of each task's demonstrations (`per_episode` evenly spaced timesteps of each)."""
   cfg = checkpoint.read_config(run)
   data = loop.load_data(cfg, generate=False, progress=False)
-  stats = checkpoint.read_stats(run)
-  import dataclasses
-  data = dataclasses.replace(data, stats=stats)
+  data = dataclasses.replace(data, stats=checkpoint.read_stats(run))
   ld = data_loader.ChunkLoader(data, 1, chunk=cfg.model.chunk, normalize_object_state=cfg.model.normalize_object_state)
   out = {}
   for i, task in enumerate(data.tasks):
@@ -166,8 +166,6 @@ def report(result: dict) -> str:
   lines = [f"Closed-loop success (%) of ACT+SkillPlug with the router's weights replaced; mean ± SE over "
            f"seeds {', '.join(seeds)}, {result['trials']} paired trials per task:", "",
            "| routing | " + " | ".join(abbr) + " | Avg. |", "|---|" + "---|" * (len(abbr) + 1)]
-  from skillplug_jax.evaluate.tables import mean_se
-
   def cell(v):
     m, se = mean_se(v)
     return f"{m:.1f}" if se is None else f"{m:.1f}±{se:.1f}"

@@ -21,6 +21,7 @@ from skillplug_jax.evaluate.policy_controller import load_controller
 from skillplug_jax.train import checkpoint, loop
 from skillplug_jax.train.config import TrainConfig
 
+
 def source_protocol(source: TrainConfig):
   """The few-shot protocol (`configs.FewShot`) of the config a multi-task run was trained from."""
   from experiments import configs  # the configs build on this package: load them when asked

@@ -18,7 +18,6 @@ from envs.env import SUCCESS_HOLD_STEPS
 from skillplug_jax.evaluate import groups, protocol, tables
 from skillplug_jax.evaluate.policy_controller import policy_controller, temporal_ensemble
 from envs.rollout import EpisodeResults, expert_controller, run_episodes
-from skillplug_jax.model import config as model_config
 from skillplug_jax.model.policy import Policy
 from skillplug_jax.train import loop
 from skillplug_jax.train import config as train_config

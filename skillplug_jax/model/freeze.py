@@ -14,6 +14,7 @@ import optax
 
 GROUPS = ("encoder", "cvae", "skills", "interactor", "router", "posterior", "action_head")
 
+
 def _groups_tree(params: Mapping[str, Any]) -> Mapping[str, Any]:
   """Accept either `variables` ({'params': ...}) or the params tree itself."""
   if set(params.keys()) == {"params"}:
