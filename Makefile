@@ -54,11 +54,13 @@ pretrain: install
 
 # The paper's protocol at CPU scale (experiments/configs/cpu.py): demos, ACT and ACT+SkillPlug
 # over 3 seeds, 50 paired trials per task, few-shot on the 4 unseen tasks, the tables. Resumes
-# where it stopped; its summary and routing arrays are copied to docs/results/paper_cpu/. SET: overrides, e.g.
-# SET="--set seeds=0 --set trials=10".
+# where it stopped; its summary and routing arrays are copied to PUBLISH (the committed
+# docs/results/paper_cpu/). SET: overrides, e.g. SET="--set seeds=0 --set trials=10" (then give
+# another PUBLISH, or the committed results are replaced by the smaller run's).
 SET ?=
+PUBLISH ?= docs/results/paper_cpu
 paper-cpu: install
-	$(PY) -m experiments.pipeline --config cpu --out $(OUT)/paper_cpu --publish docs/results/paper_cpu $(SET)
+	$(PY) -m experiments.pipeline --config cpu --out $(OUT)/paper_cpu --publish $(PUBLISH) $(SET)
 
 # The notebooks (notebooks/), executed in place on docs/results/paper_cpu.
 notebooks: install
