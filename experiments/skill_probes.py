@@ -164,7 +164,7 @@ def report(result: dict) -> str:
   abbr = [envs.task_class(t).abbr for t in tasks]
   seeds = sorted(result["seeds"], key=int)
   lines = [f"Closed-loop success (%) of ACT+SkillPlug with the router's weights replaced; mean ± SE over "
-           f"seeds {', '.join(seeds)}, {result['trials']} paired trials per task:", "",
+           f"seed(s) {', '.join(seeds)}; {result['trials']} paired trials per task:", "",
            "| routing | " + " | ".join(abbr) + " | Avg. |", "|---|" + "---|" * (len(abbr) + 1)]
   def cell(v):
     m, se = mean_se(v)
@@ -208,7 +208,8 @@ def main(argv=None) -> int:
   p.add_argument("--publish", default="", help="also copy skill_probes.{json,md} here")
   p.add_argument("--videos", type=int, default=0,
                  help="GIFs of each task's first N trials in every routing mode, for the first seed "
-                      "(OUT/probe_videos/seed<S>/<mode>/<task>_trialNN.gif; only for modes not yet cached)")
+                      "(OUT/probe_videos/seed<S>/<mode>/<task>_trialNN.gif; only for modes not yet cached; "
+                      "rendering needs MUJOCO_GL=egl on a machine without a display, as make sets)")
   args = p.parse_args(argv)
   envs.quiet_warp()
   try:
