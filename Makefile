@@ -15,7 +15,7 @@ BACKEND ?= auto
 
 export MUJOCO_GL ?= egl
 
-.PHONY: install test quickstart paper-cpu notebooks experts demos pretrain fewshot eval bench-envs bench-loader bench-train bench-eval bench scenes clean
+.PHONY: install test quickstart paper-cpu loss-ablation k-sweep notebooks experts demos pretrain fewshot eval bench-envs bench-loader bench-train bench-eval bench scenes clean
 
 install: $(VENV)/.installed
 
@@ -61,6 +61,16 @@ SET ?=
 PUBLISH ?= docs/results/paper_cpu
 paper-cpu: install
 	$(PY) -m experiments.pipeline --config cpu --out $(OUT)/paper_cpu --publish $(PUBLISH) $(SET)
+
+# The paper's analyses at CPU scale, read against the committed paper-cpu summary (its full-loss,
+# K=4 and ACT rows): the loss ablation (Rec, +KL, +SD; with few-shot) and the K sweep (K=2, 6, 8;
+# multi-task), one seed each as in the paper (experiments/configs/loss_ablation.py, k_sweep.py).
+loss-ablation: install
+	$(PY) -m experiments.pipeline --config loss_ablation --out $(OUT)/loss_ablation --publish docs/results/loss_ablation $(SET)
+
+k-sweep: install
+	$(PY) -m experiments.pipeline --config k_sweep --out $(OUT)/k_sweep --publish docs/results/k_sweep $(SET)
+	$(PY) -m experiments.skill_probes --config k_sweep --out $(OUT)/k_sweep --geometry-only --publish docs/results/k_sweep
 
 # The notebooks (notebooks/), executed in place on docs/results/paper_cpu.
 notebooks: install

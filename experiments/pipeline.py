@@ -46,10 +46,18 @@ def tasks_of(taskset: str) -> tuple[str, ...]:
   return tuple(n for part in taskset.split(",") for n in envs.taskset(part))
 
 
-def pretrain_config(exp: configs.Experiment, policy: str, seed: int, out: Path) -> TrainConfig:
+def pretrain_config(exp: configs.Experiment, policy: str, seed: int, out: Path,
+                    data_dir: Path | None = None) -> TrainConfig:
+  """The run of (policy, seed) under `out`; datasets in `data_dir` (default out/datasets)."""
   cfg = exp.train_config(policy, seed)
-  return dataclasses.replace(cfg, data_dir=str(out / "datasets"),
+  return dataclasses.replace(cfg, data_dir=str(data_dir or out / "datasets"),
                              workdir=str(out / "runs" / f"{cfg.taskset}_{policy}_{cfg.preset}_seed{seed}"))
+
+
+def arms(exp: configs.Experiment, out: Path) -> list[tuple[configs.Variant, configs.Experiment, Path]]:
+  """(variant, its experiment, its output folder): OUT itself for a config without variants,
+  OUT/<variant> for each variant (the datasets are shared, in OUT/datasets)."""
+  return [(v, e, out / v.name if v.name else out) for v, e in configs.expand(exp)]
 
 
 def evaluated(run: Path, tasks, exp: configs.Experiment, name: str, train_cfg: TrainConfig,
@@ -79,16 +87,17 @@ def evaluated(run: Path, tasks, exp: configs.Experiment, name: str, train_cfg: T
   return results
 
 
-def job(exp: configs.Experiment, policy: str, seed: int, out: Path) -> dict:
+def job(exp: configs.Experiment, policy: str, seed: int, out: Path, data_dir: Path | None = None,
+        variant: str = "") -> dict:
   """Pretrain one (policy, seed), evaluate it, adapt it to every unseen task (one worker process)."""
   envs.quiet_warp()
-  label, stages = f"{policy} seed {seed}", {}
+  label, stages = f"{variant + ' ' if variant else ''}{policy} seed {seed}", {}
 
   def stage(name: str, t0: float) -> None:
     stages[name] = round(time.time() - t0, 1)
     print(f"[pipeline] {label}: {name} done in {stages[name]:.0f} s", file=sys.stderr, flush=True)
 
-  cfg = pretrain_config(exp, policy, seed, out)
+  cfg = pretrain_config(exp, policy, seed, out, data_dir)
   t0 = time.time()
   run = loop.train(cfg, progress=False)
   stage("pretrain", t0)
@@ -107,25 +116,40 @@ def job(exp: configs.Experiment, policy: str, seed: int, out: Path) -> dict:
       results = evaluated(few_run, [task], exp, task, source, extra=dict(source=str(run)))
       adapted += [dict(r, trainable=list(few.trainable), steps=steps) for r in results]
     stage("few-shot adapt + evaluate", t0)
+  if variant:  # which arm of the experiment each result belongs to
+    pretrain, adapted = [dict(r, variant=variant) for r in pretrain], [dict(r, variant=variant) for r in adapted]
   return dict(run=str(run), pretrain=pretrain, fewshot=adapted, stages_s=stages)
 
 
-def merged_summary(parts: list[dict], key: str, tasks) -> dict:
-  """The jobs' results of one stage and their tables: rows group every job's runs."""
-  results = [r for part in parts for r in part[key]]
+def merged_summary(parts: list[dict], key: str, tasks, reference: list[dict] = ()) -> dict:
+  """The jobs' results of one stage (and the reference's) and their tables: rows group every job's runs."""
+  results = list(reference) + [r for part in parts for r in part[key]]
   return dict(results=results, **tables.summarise(results, tasks))
 
 
 def make_datasets(exp: configs.Experiment, out: Path) -> float:
   """Every dataset the jobs read, generated here first (the workers then only read them)."""
   t0 = time.time()
-  source = pretrain_config(exp, exp.policies[0], exp.seeds[0], out)
-  loop.load_data(source)
-  if exp.run_fewshot:
-    first_unseen = tasks_of(exp.fewshot.taskset)[0]  # one dataset holds every unseen task
-    loop.load_data(fewshot.fewshot_config(source, source.run_dir, first_unseen, exp.fewshot.taskset,
-                                          exp.fewshot.demos, steps=1, trainable=()))
+  for _, arm, arm_out in arms(exp, out):
+    if not arm.seeds or not arm.policies:
+      continue
+    source = pretrain_config(arm, arm.policies[0], arm.seeds[0], arm_out, out / "datasets")
+    loop.load_data(source)
+    if arm.run_fewshot:
+      first_unseen = tasks_of(arm.fewshot.taskset)[0]  # one dataset holds every unseen task
+      loop.load_data(fewshot.fewshot_config(source, source.run_dir, first_unseen, arm.fewshot.taskset,
+                                            arm.fewshot.demos, steps=1, trainable=()))
   return round(time.time() - t0, 1)
+
+
+def reference_results(path: str, stage: str) -> list[dict]:
+  """The results of one stage of a published summary, marked as read from it."""
+  p = Path(path)
+  if not p.exists():
+    raise ValueError(f"reference summary {p} does not exist (a published pipeline summary.json)")
+  summary = json.loads(p.read_text())
+  return [dict(r, reference=str(p), config=groups.normalised(r["config"]))
+          for r in summary.get(stage, {}).get("results", [])]
 
 
 def run(exp: configs.Experiment, out: Path) -> dict:
@@ -133,35 +157,62 @@ def run(exp: configs.Experiment, out: Path) -> dict:
   print(f"[pipeline] {exp.train.preset}: expert demonstrations ...", file=sys.stderr, flush=True)
   stages = {"demonstrations": make_datasets(exp, out)}
   # the slower policy first, so that the last job to start is a short one
-  jobs = [(p, s) for s in exp.seeds for p in sorted(exp.policies, key=lambda p: p != "skillplug")]
-  print(f"[pipeline] {len(jobs)} jobs (policy, seed) on {exp.workers} workers, physics on "
+  jobs = [(v.name, arm, arm_out, p, s) for v, arm, arm_out in arms(exp, out) for s in arm.seeds
+          for p in sorted(arm.policies, key=lambda p: p != "skillplug")]
+  print(f"[pipeline] {len(jobs)} jobs (variant, policy, seed) on {exp.workers} workers, physics on "
         f"{envs.resolve_backend(exp.train.backend)} (a line per finished stage) ...", file=sys.stderr, flush=True)
   t0 = time.time()
+  args = [(arm, p, s, arm_out, out / "datasets", name) for name, arm, arm_out, p, s in jobs]
   if exp.workers == 1:  # in this process, one job after another
-    parts = [job(exp, p, s, out) for p, s in jobs]
+    parts = [job(*a) for a in args]
   else:
     with ProcessPoolExecutor(exp.workers, mp_context=multiprocessing.get_context("spawn")) as pool:
-      futures = {pool.submit(job, exp, p, s, out): (p, s) for p, s in jobs}
+      futures = {pool.submit(job, *a): i for i, a in enumerate(args)}
       done = {futures[f]: f.result() for f in as_completed(futures)}
-    parts = [done[j] for j in jobs]
+    parts = [done[i] for i in range(len(jobs))]
   stages["jobs (parallel)"] = round(time.time() - t0, 1)
-  for (p, s), part in zip(jobs, parts):
-    stages.update({f"{p} seed {s} {k}": v for k, v in part["stages_s"].items()})
+  for (name, _, _, p, s), part in zip(jobs, parts):
+    stages.update({f"{name + ' ' if name else ''}{p} seed {s} {k}": v for k, v in part["stages_s"].items()})
+  ref = {stage: reference_results(exp.reference, stage) if exp.reference else [] for stage in ("pretrain", "fewshot")}
   summary = dict(config=exp.train.preset, command=exp.command, experiment=dataclasses.asdict(exp),
-                 pretrain=merged_summary(parts, "pretrain", tasks_of(exp.train.taskset)), stages_s=stages,
-                 wall_s=round(time.time() - t_start, 1), device=str(jax.devices()[0]),
+                 pretrain=merged_summary(parts, "pretrain", tasks_of(exp.train.taskset), ref["pretrain"]),
+                 stages_s=stages, wall_s=round(time.time() - t_start, 1), device=str(jax.devices()[0]),
                  backend=envs.resolve_backend(exp.train.backend), runs=[part["run"] for part in parts])
-  if exp.run_fewshot:
-    summary["fewshot"] = merged_summary(parts, "fewshot", tasks_of(exp.fewshot.taskset))
+  if any(part["fewshot"] for part in parts):
+    summary["fewshot"] = merged_summary(parts, "fewshot", tasks_of(exp.fewshot.taskset), ref["fewshot"])
+  if exp.variants:
+    summary["variants"] = variant_rows(exp, summary)
   return summary
+
+
+def variant_rows(exp: configs.Experiment, summary: dict) -> list[dict]:
+  """Each variant (and each reference row): its label, overrides, and its row's name in each
+  stage's tables (names depend on the rows beside it, so a stage's may differ from another's)."""
+  stages = [s for s in ("pretrain", "fewshot") if s in summary]
+
+  def row_of(stage, match):
+    return next((name for r in summary[stage]["results"] if match(r)
+                 for name, row in summary[stage]["rows"].items() if row["config"] == r["config"]), None)
+
+  out = [dict(variant=v.name, label=v.label or v.name, overrides=list(v.overrides),
+              rows={s: row_of(s, lambda r, v=v: r.get("variant") == v.name) for s in stages})
+         for v in exp.variants]
+  if exp.reference:
+    for name, row in summary["pretrain"]["rows"].items():
+      if not any(r.get("reference") and r["config"] == row["config"] for r in summary["pretrain"]["results"]):
+        continue
+      out.append(dict(variant="", label=f"{name} (reference)", overrides=[],
+                      rows={s: row_of(s, lambda r, c=row["config"]: bool(r.get("reference")) and r["config"] == c)
+                            for s in stages}))
+  return out
 
 
 def publish(summary: dict, text: str, dest: Path) -> None:
   """The summary and every routing array, in one folder that can be committed and read by the notebooks.
 
-  dest/summary.{md,json}; dest/routing/<policy>_seed<S>_<stage>_<task>.npz
+  dest/summary.{md,json}; dest/routing/[<variant>_]<policy>_seed<S>_<stage>_<task>.npz
   (stage: pretrain or fewshot) and dest/routing/index.json, a list of
-  {policy, seed, stage, task, file, success_rate, config}.
+  {policy, seed, stage, task, file, success_rate, config, variant}.
   """
   import shutil
   dest = Path(dest)
@@ -169,14 +220,16 @@ def publish(summary: dict, text: str, dest: Path) -> None:
   index = []
   for stage in ("pretrain", "fewshot"):
     for r in summary.get(stage, {}).get("results", []):
-      if not r.get("routing_file"):
+      if not r.get("routing_file") or r.get("reference"):  # a reference's arrays are where it was published
         continue
-      name = f"{r['config']['model.policy']}_seed{r['train_seed']}_{stage}_{r['task']}.npz"
+      arm = f"{r['variant']}_" if r.get("variant") else ""
+      name = f"{arm}{r['config']['model.policy']}_seed{r['train_seed']}_{stage}_{r['task']}.npz"
       tmp = dest / "routing" / (name + ".tmp")
       shutil.copyfile(r["routing_file"], tmp)
       tmp.replace(dest / "routing" / name)
       index.append(dict(policy=r["policy"], seed=r["train_seed"], stage=stage, task=r["task"], file=name,
-                        success_rate=r["success_rate"], config=groups.key_id(r["config"])))
+                        success_rate=r["success_rate"], config=groups.key_id(r["config"]),
+                        variant=r.get("variant", "")))
   write_json_atomic(dest / "routing" / "index.json", index)
   write_json_atomic(dest / "summary.json", summary)
   write_text_atomic(dest / "summary.md", text + "\n")
@@ -207,13 +260,55 @@ def _fewshot_steps(summary: dict) -> str:
   return "/".join(map(str, steps)) or str(summary["experiment"]["fewshot"]["steps"])
 
 
+def _avg(table: dict, row: str) -> str:
+  cell = table["rows"].get(row, {}).get("cells", {}).get("Avg.")
+  return "-" if cell is None else (f"{cell[0]:.1f}" if cell[1] is None else f"{cell[0]:.1f} ± {cell[1]:.1f}")
+
+
+def per_seed_avg(summary: dict, stage: str, row: str) -> dict[int, float]:
+  """{training seed: its success rate (%) averaged over the stage's tasks} of one row."""
+  cfg = summary[stage]["rows"][row]["config"]
+  rates = {}
+  for r in summary[stage]["results"]:
+    if r["config"] == cfg:
+      rates.setdefault(r["train_seed"], []).append(100 * r["success_rate"])
+  return {s: sum(v) / len(v) for s, v in sorted(rates.items())}
+
+
+def variants_report(summary: dict) -> str:
+  """One line per arm: its Avg. success in each stage, and each seed's, so that single-seed arms can
+  be read against the same seed of the others."""
+  stages = [s for s in ("pretrain", "fewshot") if s in summary]
+  head = ["variant", "row", "seeds"] + [f"{'Multi-task' if s == 'pretrain' else 'Few-shot'} Avg. (per seed)"
+                                         for s in stages]
+  lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
+  for v in summary["variants"]:
+    cells = []
+    for s in stages:
+      row = v["rows"].get(s)
+      if row is None:
+        cells.append("-")
+        continue
+      seeds = per_seed_avg(summary, s, row)
+      cells.append(f"{_avg(summary[s]['table'], row)} ({', '.join(f's{k}: {x:.1f}' for k, x in seeds.items())})")
+    row = v["rows"]["pretrain"]
+    seeds = summary["pretrain"]["rows"][row]["seeds"] if row else []
+    lines.append(f"| {v['label']} | {row or '-'} | {','.join(map(str, seeds))} | " + " | ".join(cells) + " |")
+  return "\n".join(lines)
+
+
 def report(summary: dict) -> str:
   exp = summary["experiment"]
   t, d, seeds = exp["trials"], exp["train"]["demos"], exp["seeds"]
-  lines = ["Multi-task:", "",
-           tables.report(summary["pretrain"], f"`{summary['config']}` config, {d} demos per task, "
-                         f"{len(seeds)} training seed(s), {t} paired trials per task"), "",
-           comparison(summary["pretrain"]["table"], "success points, multi-task"), ""]
+  seeds_text = ("training seeds per row as listed under Variants" if summary.get("variants")
+                else f"{len(seeds)} training seed(s)")
+  lines = []
+  if summary.get("variants"):
+    lines += ["Variants:", "", variants_report(summary), ""]
+  lines += ["Multi-task:", "",
+            tables.report(summary["pretrain"], f"`{summary['config']}` config, {d} demos per task, "
+                          f"{seeds_text}, {t} paired trials per task"), "",
+            comparison(summary["pretrain"]["table"], "success points, multi-task"), ""]
   if "fewshot" in summary:
     fs = exp["fewshot"]
     lines += ["Few-shot on the unseen tasks:", "",
@@ -235,11 +330,20 @@ def main(argv=None, default_config: str = "cpu", default_out: str = "") -> int:
   p.add_argument("--out", default=default_out, help="datasets, runs and the summary go here (default results/<config>)")
   p.add_argument("--publish", default="", metavar="DIR",
                  help="also copy the summary and the routing arrays here (e.g. docs/results/paper_cpu)")
+  p.add_argument("--variants", default="", metavar="A,B",
+                 help="of a config with variants (an ablation, a sweep), run and tabulate only these")
   args = p.parse_args(argv)
   envs.quiet_warp()
   try:
     exp = configs.get(args.config, args.set)
-    if not exp.seeds or not exp.policies or exp.trials < 1 or exp.workers < 1:
+    if args.variants:
+      wanted = args.variants.split(",")
+      unknown = sorted(set(wanted) - {v.name for v in exp.variants})
+      if unknown:
+        raise ValueError(f"unknown variant(s) {unknown} of config {args.config!r}; it has: "
+                         f"{', '.join(v.name for v in exp.variants) or 'none'}")
+      exp = dataclasses.replace(exp, variants=tuple(v for v in exp.variants if v.name in wanted))
+    if any(not arm.seeds or not arm.policies for _, arm in configs.expand(exp)) or exp.trials < 1 or exp.workers < 1:
       raise ValueError("seeds and policies must be non-empty, trials and workers >= 1")
     out = Path(args.out or f"results/{args.config}")
     summary = run(exp, out)

@@ -3,7 +3,9 @@
     python -m experiments.skill_probes --config cpu --out results/paper_cpu --publish docs/results/paper_cpu
 
 For every training seed of the config's ACT+SkillPlug runs (found where
-`experiments.pipeline` put them under --out):
+`experiments.pipeline` put them under --out; for a config with variants,
+every variant's, e.g. `--config k_sweep --geometry-only` for the skills'
+similarity at each K):
 
 1. closed loop on the pretraining tasks with the router's weights replaced:
    `router` (its own), `uniform` (1/K each: what a router that learned
@@ -162,7 +164,23 @@ def geometry(run: Path, act_run: Path | None, tasks) -> dict:
 def report(result: dict) -> str:
   tasks = result["tasks"]
   abbr = [envs.task_class(t).abbr for t in tasks]
-  seeds = sorted(result["seeds"], key=int)
+  runs = list(result["seeds"])  # "0", "1", ... or, for a config with variants, "<variant>/seed<S>"
+  looped = [s for s in runs if "closed_loop" in result["seeds"][s]]
+  lines = closed_loop_report(result, looped, tasks, abbr) if looped else []
+  lines += ["", "Skill geometry on demonstration states (per run, mean over the tasks; per task in the JSON):", "",
+            "| run | K | skill cos (off-diag) | u_k cos (off-diag) | u_k spread | cos(h~, h) | cos(h~, mean u) | CKA(h~, ACT h) | CKA(h, ACT h) |",
+            "|---|---|---|---|---|---|---|---|---|"]
+  for s in runs:
+    g = result["seeds"][s]["geometry"]
+    m = lambda key: float(np.mean([g["tasks"][t][key] for t in g["tasks"]])) if all(key in g["tasks"][t] for t in g["tasks"]) else float("nan")  # noqa: E731
+    lines.append(f"| {s} | {len(g['skill_cosine'])} | {g['skill_offdiag_cosine']:.3f} | {m('interactor_offdiag_cosine'):.3f} | "
+                 f"{m('interactor_spread'):.3f} | {m('fused_vs_encoder_cosine'):.3f} | {m('fused_vs_mean_u_cosine'):.3f} | "
+                 f"{m('cka_fused_vs_act'):.3f} | {m('cka_encoder_vs_act'):.3f} |")
+  return "\n".join(lines)
+
+
+def closed_loop_report(result: dict, seeds: list[str], tasks, abbr) -> list[str]:
+  """Success per routing mode, mean ± SE over the runs that were rolled out."""
   lines = [f"Closed-loop success (%) of ACT+SkillPlug with the router's weights replaced; mean ± SE over "
            f"seed(s) {', '.join(seeds)}; {result['trials']} paired trials per task:", "",
            "| routing | " + " | ".join(abbr) + " | Avg. |", "|---|" + "---|" * (len(abbr) + 1)]
@@ -188,16 +206,7 @@ def report(result: dict) -> str:
       per = [[float(np.mean(per_seed[s][t])) for s in seeds] for t in tasks]
     avg = [float(np.mean([per[i][j] for i in range(len(tasks))])) for j in range(len(seeds))]
     lines.append(f"| {name} | " + " | ".join(cell(v) for v in per) + f" | {cell(avg)} |")
-  lines += ["", "Skill geometry on demonstration states (per seed, mean over the tasks; per task in the JSON):", "",
-            "| seed | skill cos (off-diag) | u_k cos (off-diag) | u_k spread | cos(h~, h) | cos(h~, mean u) | CKA(h~, ACT h) | CKA(h, ACT h) |",
-            "|---|---|---|---|---|---|---|---|"]
-  for s in seeds:
-    g = result["seeds"][s]["geometry"]
-    m = lambda key: float(np.mean([g["tasks"][t][key] for t in g["tasks"]])) if all(key in g["tasks"][t] for t in g["tasks"]) else float("nan")  # noqa: E731
-    lines.append(f"| {s} | {g['skill_offdiag_cosine']:.3f} | {m('interactor_offdiag_cosine'):.3f} | "
-                 f"{m('interactor_spread'):.3f} | {m('fused_vs_encoder_cosine'):.3f} | {m('fused_vs_mean_u_cosine'):.3f} | "
-                 f"{m('cka_fused_vs_act'):.3f} | {m('cka_encoder_vs_act'):.3f} |")
-  return "\n".join(lines)
+  return lines
 
 
 def main(argv=None) -> int:
@@ -206,6 +215,8 @@ def main(argv=None) -> int:
   p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE")
   p.add_argument("--out", default="", help="the pipeline's output folder (default results/<config>)")
   p.add_argument("--publish", default="", help="also copy skill_probes.{json,md} here")
+  p.add_argument("--geometry-only", action="store_true",
+                 help="only the skills' geometry (seconds per run), no closed-loop rollouts")
   p.add_argument("--videos", type=int, default=0,
                  help="GIFs of each task's first N trials in every routing mode, for the first seed "
                       "(OUT/probe_videos/seed<S>/<mode>/<task>_trialNN.gif; only for modes not yet cached; "
@@ -219,20 +230,23 @@ def main(argv=None) -> int:
     result = dict(config=args.config, trials=exp.trials, eval_seed=exp.eval_seed, tasks=list(tasks), seeds={},
                   device=str(jax.devices()[0]))
     t0 = time.time()
-    for seed in exp.seeds:
-      run = pipeline.pretrain_config(exp, "skillplug", seed, out).run_dir
-      act_run = pipeline.pretrain_config(exp, "act", seed, out).run_dir
-      if not (run / "config.json").exists():
-        raise ValueError(f"{run} does not exist: run the pipeline first (python -m experiments.pipeline "
-                         f"--config {args.config} --out {out})")
-      k = checkpoint.read_config(run).model.num_skills
-      result["modes"] = list(modes(k))
-      print(f"[probes] seed {seed}: closed loop with {len(modes(k))} routings ...", file=sys.stderr, flush=True)
-      result["seeds"][str(seed)] = dict(
-          run=str(run),
-          closed_loop=closed_loop(run, exp, tasks, k, videos=args.videos if seed == exp.seeds[0] else 0,
-                                  video_dir=out / "probe_videos" / f"seed{seed}"),
-          geometry=geometry(run, act_run if (act_run / "config.json").exists() else None, tasks))
+    for variant, arm, arm_out in pipeline.arms(exp, out):
+      for seed in arm.seeds:
+        run = pipeline.pretrain_config(arm, "skillplug", seed, arm_out).run_dir
+        act_run = pipeline.pretrain_config(arm, "act", seed, arm_out).run_dir
+        if not (run / "config.json").exists():
+          raise ValueError(f"{run} does not exist: run the pipeline first (python -m experiments.pipeline "
+                           f"--config {args.config} --out {out})")
+        k = checkpoint.read_config(run).model.num_skills
+        key = f"{variant.name}/seed{seed}" if variant.name else str(seed)
+        entry = dict(run=str(run), variant=variant.name, label=variant.label or variant.name)
+        if not args.geometry_only:
+          result["modes"] = list(modes(k))
+          print(f"[probes] {key}: closed loop with {len(modes(k))} routings ...", file=sys.stderr, flush=True)
+          entry["closed_loop"] = closed_loop(run, arm, tasks, k, videos=args.videos if not result["seeds"] else 0,
+                                             video_dir=out / "probe_videos" / f"seed{seed}")
+        entry["geometry"] = geometry(run, act_run if (act_run / "config.json").exists() else None, tasks)
+        result["seeds"][key] = entry
     result["wall_s"] = round(time.time() - t0, 1)
   except (ValueError, RuntimeError) as e:
     print(f"skill_probes: error: {e}", file=sys.stderr)

@@ -264,6 +264,21 @@ def test_router_starts_uniform():
   np.testing.assert_allclose(probs, 0.25)
 
 
+def test_router_temperature_sharpens_the_same_logits():
+  h = jax.random.normal(jax.random.key(1), (B, 5, 16))
+  plain = Router(4, 16)
+  params = plain.init(jax.random.key(0), h)
+  params = jax.tree.map(lambda p: p + 0.3 * jax.random.normal(jax.random.key(2), p.shape), params)  # leave uniform
+  p1 = plain.apply(params, h)
+  p01 = Router(4, 16, temperature=0.1).apply(params, h)  # the same parameters: only the softmax differs
+  logits = jnp.log(p1)
+  np.testing.assert_allclose(p01, jax.nn.softmax(logits / 0.1, axis=-1), rtol=1e-4, atol=1e-6)
+  ent = lambda p: float(-(p * jnp.log(p)).sum(-1).mean())  # noqa: E731
+  assert ent(p01) < ent(p1)
+  with pytest.raises(ValueError, match="router_temperature must be > 0"):
+    tiny(router_temperature=0.0)
+
+
 def test_latents_start_at_the_prior():
   cfg = tiny()
   batch = make_batch(cfg)

@@ -152,6 +152,43 @@ def test_notebooks_execute_on_a_published_run(tiny_run, name):
   assert "config 'quick'" in printed
 
 
+def test_variants_run_in_their_own_folders_and_join_the_reference_rows(tiny_run):
+  """An ablation-style config: each variant's runs under OUT/<name>, datasets shared, its row
+  named by what it changed, read beside the rows of a published reference summary."""
+  _, ref_out, ref = tiny_run
+  exp = dataclasses.replace(
+      configs.get("quick", TINY), policies=("skillplug",), reference=str(ref_out / "published" / "summary.json"),
+      variants=(configs.Variant("nosd", ("train.loss.sd=0",), "-SD"),
+                configs.Variant("k2", ("train.model.num_skills=2", "run_fewshot=false"), "K=2")))
+  out = ref_out / "variants"
+  summary = pipeline.run(exp, out)
+  assert sorted(p.name for p in out.iterdir()) == ["datasets", "k2", "nosd"]
+  assert (out / "nosd" / "runs" / "jujube_pick,drawer_open_skillplug_quick_seed0" / "config.json").exists()
+  rows = summary["pretrain"]["rows"]
+  assert list(rows) == ["ACT+SkillPlug (loss.sd=0.1, num_skills=3)", "ACT",
+                        "ACT+SkillPlug (loss.sd=0.0, num_skills=3)", "ACT+SkillPlug (loss.sd=0.1, num_skills=2)"]
+  # the reference's rows are its own numbers, read back
+  ref_sp = ref["pretrain"]["table"]["rows"]["ACT+SkillPlug"]["cells"]["Avg."]
+  assert list(summary["pretrain"]["table"]["rows"]["ACT+SkillPlug (loss.sd=0.1, num_skills=3)"]["cells"]["Avg."]) == list(ref_sp)
+  assert {r["variant"] for r in summary["pretrain"]["results"] if "reference" not in r} == {"nosd", "k2"}
+  # few-shot: the reference's rows and the one variant that adapts
+  assert len(summary["fewshot"]["rows"]) == 3
+  labels = {v["label"]: v["rows"]["pretrain"] for v in summary["variants"]}
+  assert labels["-SD"] == "ACT+SkillPlug (loss.sd=0.0, num_skills=3)" and labels["K=2"] == "ACT+SkillPlug (loss.sd=0.1, num_skills=2)"
+  assert "ACT (reference)" in labels and len(summary["variants"]) == 4
+  few_rows = {v["label"]: v["rows"]["fewshot"] for v in summary["variants"]}
+  assert few_rows["-SD"] == "ACT+SkillPlug (loss.sd=0.0)" and few_rows["K=2"] is None  # named beside the few-shot rows
+  text = pipeline.report(summary)
+  assert "| -SD | ACT+SkillPlug (loss.sd=0.0, num_skills=3) | 0 |" in text
+  pipeline.publish(summary, text, out / "published")
+  index = json.loads((out / "published" / "routing" / "index.json").read_text())
+  assert sorted(e["file"] for e in index if e["stage"] == "fewshot") == ["nosd_skillplug_seed0_fewshot_mouse_push.npz"]
+  assert {e["variant"] for e in index} == {"nosd", "k2"}  # the reference's arrays stay where it published them
+  with pytest.raises(ValueError, match="distinct folder names"):
+    configs.expand(dataclasses.replace(exp, variants=(configs.Variant("a"), configs.Variant("a"))))
+  assert pipeline.main(["--config", "loss_ablation", "--variants", "rec,nope", "--out", str(out)]) == 2
+
+
 def test_pipeline_cli_rejects_bad_configs(capsys):
   assert pipeline.main(["--config", "nope"]) == 2
   assert "unknown config 'nope'" in capsys.readouterr().err

@@ -46,6 +46,16 @@ class FewShot:
 
 
 @dataclasses.dataclass(frozen=True)
+class Variant:
+  """One arm of an experiment that varies a config (an ablation, a sweep): its runs go to
+  OUT/<name>/, its table row is named `label`, and `overrides` (the pipeline's --set syntax,
+  `train.loss.sd=0`, `seeds=0`, `run_fewshot=false`) make it from the config."""
+  name: str
+  overrides: tuple[str, ...] = ()
+  label: str = ""  # default: the name
+
+
+@dataclasses.dataclass(frozen=True)
 class Experiment:
   """Training settings plus the protocol that evaluates them (`experiments.pipeline`)."""
   train: TrainConfig  # model.policy and seed are set per run by `train_config`
@@ -57,10 +67,28 @@ class Experiment:
   fewshot: FewShot = FewShot()
   run_fewshot: bool = True
   workers: int = 2  # jobs (one (policy, seed) each) run side by side in this many processes; 1: in-process
+  # Several arms (ablations, sweeps): each is this experiment with its overrides. Empty: one arm,
+  # the experiment itself, whose runs go to OUT/ as they always did.
+  variants: tuple[Variant, ...] = ()
+  # A published pipeline summary (summary.json) whose results join the tables as rows that are
+  # read, not run: the baseline a sweep is read against (e.g. docs/results/paper_cpu/summary.json).
+  reference: str = ""
   command: str = ""  # the command that runs this config (filled from the docstring's first line)
 
   def train_config(self, policy: str, seed: int) -> TrainConfig:
     return dataclasses.replace(self.train, model=dataclasses.replace(self.train.model, policy=policy), seed=seed)
+
+
+def expand(exp: Experiment) -> list[tuple[Variant, Experiment]]:
+  """The arms of `exp`: (variant, the experiment it runs), or one unnamed arm when it has none."""
+  if not exp.variants:
+    return [(Variant(""), exp)]
+  names_seen = [v.name for v in exp.variants]
+  bad = [n for n in names_seen if not n or "/" in n or n.startswith(".")]
+  if bad or len(set(names_seen)) != len(names_seen):
+    raise ValueError(f"variant names must be distinct folder names, got {names_seen}")
+  base = dataclasses.replace(exp, variants=())
+  return [(v, train_config.override(base, v.overrides)) for v in exp.variants]
 
 
 def names() -> list[str]:

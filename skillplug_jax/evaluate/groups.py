@@ -27,7 +27,8 @@ NOT_TRAINING = frozenset({"seed", "workdir", "data_dir", "init_from", "log_every
                           "keep_checkpoints"})
 # Settings only ACT+SkillPlug reads: an ACT row's name never mentions them.
 SKILLPLUG_ONLY = frozenset({"model.num_skills", "model.skill_latent_dim", "model.alignment_dim",
-                            "model.interactor", "loss.kl", "loss.bsa", "loss.sd"})
+                            "model.interactor", "model.router_temperature", "loss.kl", "loss.bsa",
+                            "loss.sd"})
 
 
 def policy_label(cfg: train_config.TrainConfig) -> str:
@@ -56,6 +57,20 @@ def _flat(d: Mapping[str, Any], prefix: str = "") -> dict:
 def training_key(cfg: train_config.TrainConfig) -> dict:
   """Every setting that changes what is trained, dotted names -> JSON values."""
   return {k: v for k, v in _flat(dataclasses.asdict(cfg)).items() if k not in NOT_TRAINING}
+
+
+def normalised(key: Mapping[str, Any]) -> dict:
+  """A training key recorded by an older version, as today's code would write it: settings added
+  since take the values that reproduce what was trained (`train.config.from_dict`)."""
+  nested: dict = {}
+  for name, value in key.items():
+    *parents, leaf = name.split(".")
+    d = nested
+    for part in parents:
+      d = d.setdefault(part, {})
+    d[leaf] = value
+  nested.setdefault("loss", {})
+  return training_key(train_config.from_dict(nested))
 
 
 def overrides(key: Mapping[str, Any]) -> dict:

@@ -69,6 +69,8 @@ class ModelConfig:
   # Width of the shared space where g_tau(f_tau) and g_s(s_k) are compared (BSA).
   alignment_dim: int = 128
   interactor: str = "query_offset"  # see interactor.INTERACTORS
+  # Softmax temperature of the router (1: the paper's softmax; below 1: sharper routing).
+  router_temperature: float = 1.0
   dtype: str = "float32"  # compute dtype ('bfloat16' on GPUs); params stay float32
 
   def __post_init__(self):
@@ -78,6 +80,8 @@ class ModelConfig:
       raise ValueError(f"positions must be one of {POSITIONS}, got {self.positions!r}")
     if self.hidden % self.heads:
       raise ValueError(f"hidden ({self.hidden}) must be divisible by heads ({self.heads})")
+    if not self.router_temperature > 0:
+      raise ValueError(f"router_temperature must be > 0, got {self.router_temperature}")
     if self.decoder_first_layer_only and self.dec_layers < 1:
       raise ValueError("decoder_first_layer_only needs at least one decoder layer")
 

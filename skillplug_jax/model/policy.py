@@ -8,7 +8,7 @@ masks by name):
   cvae         ACT's CVAE encoder (training only)
   skills       the skill library s_1..s_K                       (skillplug)
   interactor   u_k = Interactor(h, s_k)                          (skillplug)
-  router       r = softmax(MLP(pool(h)))                         (skillplug)
+  router       r = softmax(MLP(pool(h)) / T)                     (skillplug)
   posterior    f_tau, q(z_k | f_tau, s_k), W, g_tau, g_s         (skillplug)
   action_head  decoder queries, decoder, action projection (f_act)
 
@@ -44,7 +44,7 @@ class Policy(nn.Module):
       self.skills = SkillLibrary(cfg.num_skills, cfg.hidden)
       self.interactor = INTERACTORS[cfg.interactor](
           cfg.hidden, cfg.heads, cfg.ff, cfg.dropout, dt)
-      self.router = Router(cfg.num_skills, cfg.hidden, dt)
+      self.router = Router(cfg.num_skills, cfg.hidden, dt, cfg.router_temperature)
       self.posterior = TrajectorySkillPosterior(
           cfg.hidden, cfg.skill_latent_dim, cfg.alignment_dim)
 

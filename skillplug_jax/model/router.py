@@ -12,11 +12,14 @@ class Router(nn.Module):
 
   The output layer starts at zero so every skill gets weight 1/K at first
   and no skill wins by initialisation; it is also what few-shot adaptation
-  retrains, together with the action head.
+  retrains, together with the action head. `temperature` divides the
+  logits: below 1 the same logits give sharper weights (a remedy tried
+  against routing that stays uniform; 1 is the paper's plain softmax).
   """
   num_skills: int
   hidden: int
   dtype: jnp.dtype = jnp.float32
+  temperature: float = 1.0
 
   @nn.compact
   def __call__(self, h: jnp.ndarray) -> jnp.ndarray:
@@ -24,4 +27,6 @@ class Router(nn.Module):
     x = nn.relu(nn.Dense(self.hidden, dtype=self.dtype, name="fc1")(x))
     logits = nn.Dense(self.num_skills, dtype=jnp.float32, kernel_init=nn.initializers.zeros,
                       name="fc2")(x)
+    if self.temperature != 1.0:
+      logits = logits / self.temperature
     return jax.nn.softmax(logits.astype(jnp.float32), axis=-1)
