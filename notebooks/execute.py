@@ -18,7 +18,7 @@ import nbformat
 from nbclient import NotebookClient
 
 HERE = Path(__file__).resolve().parent
-NOTEBOOKS = ("success_tables.ipynb", "routing.ipynb")
+NOTEBOOKS = ("success_tables.ipynb", "routing.ipynb", "skill_similarity.ipynb", "fixed_skills.ipynb")
 
 
 def execute(path: str | Path, results: str | Path | None = None, timeout: int = 600):

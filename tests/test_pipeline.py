@@ -135,11 +135,18 @@ def test_pipeline_resumes_without_training_or_evaluating_again(tiny_run, monkeyp
   assert all(loop.load_params(r["run"])[2] == 4 for r in summary["pretrain"]["results"])
 
 
-@pytest.mark.parametrize("name", ["success_tables.ipynb", "routing.ipynb"])
-def test_notebooks_execute_on_a_published_run(tiny_run, name):
+@pytest.mark.parametrize("name", ["success_tables.ipynb", "routing.ipynb", "skill_similarity.ipynb",
+                                  "fixed_skills.ipynb"])
+def test_notebooks_execute_on_a_published_run(tiny_run, name, monkeypatch):
   """The committed notebooks run top to bottom on a (smoke-size) published pipeline run and draw."""
   import importlib.util
   from pathlib import Path
+  from experiments import skill_probes
+  published = tiny_run[1] / "published"
+  if name in ("skill_similarity.ipynb", "fixed_skills.ipynb") and not (published / "skill_probes.json").exists():
+    args = ["--config", "quick", "--out", str(tiny_run[1]), "--publish", str(published)]
+    assert skill_probes.main(args + [a for o in TINY for a in ("--set", o)]) == 0
+  monkeypatch.setenv("SKILLPLUG_KSWEEP", str(tiny_run[1] / "no_k_sweep"))  # only the tiny run's probes
   root = Path(__file__).resolve().parents[1] / "notebooks"
   spec = importlib.util.spec_from_file_location("nb_execute", root / "execute.py")
   mod = importlib.util.module_from_spec(spec)
