@@ -47,14 +47,29 @@ from skillplug_jax.model.policy import Policy
 from skillplug_jax.train import checkpoint, loop
 
 
-def modes(k: int) -> dict[str, tuple[float, ...] | None]:
+def modes(k: int, pairs: bool = False) -> dict[str, tuple[float, ...] | None]:
+  """Routing modes: the router's own, uniform, each skill alone, and with `pairs` each pair of
+  skills half and half (`mix<a><b>`: the paper's mixed-skill rollouts)."""
   out = {"router": None, "uniform": (1.0 / k,) * k}
   out.update({f"skill{i}": tuple(float(i == j) for j in range(k)) for i in range(k)})
+  if pairs:
+    out.update({f"mix{a}{b}": tuple(0.5 * (j in (a, b)) for j in range(k)) for a in range(k) for b in range(a + 1, k)})
   return out
 
 
+def select(all_modes: dict, wanted: str) -> dict:
+  """The modes named in `wanted` (comma-separated; empty: all), in their order in `all_modes`."""
+  if not wanted:
+    return all_modes
+  names = wanted.split(",")
+  unknown = [n for n in names if n not in all_modes]
+  if unknown:
+    raise ValueError(f"unknown routing mode(s) {unknown}; this run has: {', '.join(all_modes)}")
+  return {m: w for m, w in all_modes.items() if m in names}
+
+
 def closed_loop(run: Path, exp: configs.Experiment, tasks, k: int, videos: int = 0,
-                video_dir: Path | None = None) -> dict:
+                video_dir: Path | None = None, chosen: dict | None = None) -> dict:
   """{mode: {task: success rate}} for every routing mode (cached per mode).
 
   videos > 0: GIFs of the side camera of each task's first `videos` trials
@@ -62,7 +77,7 @@ def closed_loop(run: Path, exp: configs.Experiment, tasks, k: int, videos: int =
   evaluated, not when it is read back)."""
   out = {}
   own = run / "eval" / f"{exp.train.taskset}_trials{exp.trials}_seed{exp.eval_seed}.json"  # the pipeline's
-  for mode, weights in modes(k).items():
+  for mode, weights in (modes(k) if chosen is None else chosen).items():
     path = run / "eval" / f"probe_{mode}_trials{exp.trials}_seed{exp.eval_seed}.json"
     if mode == "router" and own.exists() and not videos:
       out[mode] = {r["task"]: dict(success_rate=r["success_rate"], trial_success=r["trial_success"])
@@ -197,6 +212,8 @@ def closed_loop_report(result: dict, seeds: list[str], tasks, abbr) -> list[str]
     lines.append(f"| {mode} | " + " | ".join(cell(v) for v in per) + f" | {cell(avg)} |")
   # skill k of one seed is not skill k of another: per seed, its best and its mean single skill
   singles = [m for m in result["modes"] if m.startswith("skill")]
+  if not singles:
+    return lines
   for name, pick in (("best single skill (per seed)", max), ("mean single skill (per seed)", np.mean)):
     per_seed = {s: {t: [rate(s, m, t) for m in singles] for t in tasks} for s in seeds}
     best = {s: max(singles, key=lambda m: np.mean([rate(s, m, t) for t in tasks])) for s in seeds}
@@ -215,6 +232,10 @@ def main(argv=None) -> int:
   p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE")
   p.add_argument("--out", default="", help="the pipeline's output folder (default results/<config>)")
   p.add_argument("--publish", default="", help="also copy skill_probes.{json,md} here")
+  p.add_argument("--pairs", action="store_true",
+                 help="also roll out every pair of skills half and half (mix<a><b>: mixed-skill rollouts)")
+  p.add_argument("--modes", default="", metavar="A,B",
+                 help="only these routing modes (router, uniform, skill<k>, mix<a><b> with --pairs)")
   p.add_argument("--geometry-only", action="store_true",
                  help="only the skills' geometry (seconds per run), no closed-loop rollouts")
   p.add_argument("--videos", type=int, default=0,
@@ -241,10 +262,11 @@ def main(argv=None) -> int:
         key = f"{variant.name}/seed{seed}" if variant.name else str(seed)
         entry = dict(run=str(run), variant=variant.name, label=variant.label or variant.name)
         if not args.geometry_only:
-          result["modes"] = list(modes(k))
-          print(f"[probes] {key}: closed loop with {len(modes(k))} routings ...", file=sys.stderr, flush=True)
+          chosen = select(modes(k, args.pairs), args.modes)
+          result["modes"] = list(chosen)
+          print(f"[probes] {key}: closed loop with {len(chosen)} routings ...", file=sys.stderr, flush=True)
           entry["closed_loop"] = closed_loop(run, arm, tasks, k, videos=args.videos if not result["seeds"] else 0,
-                                             video_dir=out / "probe_videos" / f"seed{seed}")
+                                             video_dir=out / "probe_videos" / f"seed{seed}", chosen=chosen)
         entry["geometry"] = geometry(run, act_run if (act_run / "config.json").exists() else None, tasks)
         result["seeds"][key] = entry
     result["wall_s"] = round(time.time() - t0, 1)

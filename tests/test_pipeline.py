@@ -265,6 +265,14 @@ def test_skill_probes_replace_the_routing_and_measure_the_skills(tiny_run, capsy
     assert 0.0 < row["cka_fused_vs_act"] <= 1.0 + 1e-6 and row["interactor_spread"] >= 0.0
     assert sum(row["router_mean"]) == pytest.approx(1.0, abs=1e-5)
   assert "| uniform |" in capsys.readouterr().out
+  # mixed-skill rollouts: each pair half and half, only the modes asked for
+  assert skill_probes.modes(3, pairs=True)["mix02"] == (0.5, 0.0, 0.5) and "mix12" in skill_probes.modes(3, True)
+  assert skill_probes.main(args + ["--pairs", "--modes", "router,mix01"]) == 0
+  mixed = json.loads((out / "skill_probes.json").read_text())
+  assert mixed["modes"] == ["router", "mix01"] and set(mixed["seeds"]["0"]["closed_loop"]) == {"router", "mix01"}
+  assert (run / "eval" / f"probe_mix01_trials{exp.trials}_seed{exp.eval_seed}.json").exists()
+  assert "| mix01 |" in capsys.readouterr().out
+  assert skill_probes.main(args + ["--modes", "mix01"]) == 2  # pairs not asked for
 
 
 def test_comparison_gives_the_difference_and_its_standard_error():
