@@ -47,13 +47,16 @@ from skillplug_jax.model.policy import Policy
 from skillplug_jax.train import checkpoint, loop
 
 
-def modes(k: int, pairs: bool = False) -> dict[str, tuple[float, ...] | None]:
-  """Routing modes: the router's own, uniform, each skill alone, and with `pairs` each pair of
-  skills half and half (`mix<a><b>`: the paper's mixed-skill rollouts)."""
+def modes(k: int, pairs: bool = False, drops: bool = False) -> dict[str, tuple[float, ...] | None]:
+  """Routing modes: the router's own, uniform, each skill alone; with `pairs` each pair of skills
+  half and half (`mix<a><b>`: the paper's mixed-skill rollouts); with `drops` uniform over all
+  skills but one (`drop<k>`: what the policy loses when skill k is removed)."""
   out = {"router": None, "uniform": (1.0 / k,) * k}
   out.update({f"skill{i}": tuple(float(i == j) for j in range(k)) for i in range(k)})
   if pairs:
     out.update({f"mix{a}{b}": tuple(0.5 * (j in (a, b)) for j in range(k)) for a in range(k) for b in range(a + 1, k)})
+  if drops and k > 1:
+    out.update({f"drop{i}": tuple(0.0 if j == i else 1.0 / (k - 1) for j in range(k)) for i in range(k)})
   return out
 
 
@@ -234,8 +237,10 @@ def main(argv=None) -> int:
   p.add_argument("--publish", default="", help="also copy skill_probes.{json,md} here")
   p.add_argument("--pairs", action="store_true",
                  help="also roll out every pair of skills half and half (mix<a><b>: mixed-skill rollouts)")
+  p.add_argument("--drops", action="store_true",
+                 help="also roll out uniform routing over all skills but one (drop<k>: skill k removed)")
   p.add_argument("--modes", default="", metavar="A,B",
-                 help="only these routing modes (router, uniform, skill<k>, mix<a><b> with --pairs)")
+                 help="only these routing modes (router, uniform, skill<k>; mix<a><b> with --pairs, drop<k> with --drops)")
   p.add_argument("--geometry-only", action="store_true",
                  help="only the skills' geometry (seconds per run), no closed-loop rollouts")
   p.add_argument("--videos", type=int, default=0,
@@ -262,7 +267,7 @@ def main(argv=None) -> int:
         key = f"{variant.name}/seed{seed}" if variant.name else str(seed)
         entry = dict(run=str(run), variant=variant.name, label=variant.label or variant.name)
         if not args.geometry_only:
-          chosen = select(modes(k, args.pairs), args.modes)
+          chosen = select(modes(k, args.pairs, args.drops), args.modes)
           result["modes"] = list(chosen)
           print(f"[probes] {key}: closed loop with {len(chosen)} routings ...", file=sys.stderr, flush=True)
           entry["closed_loop"] = closed_loop(run, arm, tasks, k, videos=args.videos if not result["seeds"] else 0,

@@ -267,6 +267,7 @@ def test_skill_probes_replace_the_routing_and_measure_the_skills(tiny_run, capsy
   assert "| uniform |" in capsys.readouterr().out
   # mixed-skill rollouts: each pair half and half, only the modes asked for
   assert skill_probes.modes(3, pairs=True)["mix02"] == (0.5, 0.0, 0.5) and "mix12" in skill_probes.modes(3, True)
+  assert skill_probes.modes(3, drops=True)["drop1"] == (0.5, 0.0, 0.5) and "mix01" not in skill_probes.modes(3, drops=True)
   assert skill_probes.main(args + ["--pairs", "--modes", "router,mix01"]) == 0
   mixed = json.loads((out / "skill_probes.json").read_text())
   assert mixed["modes"] == ["router", "mix01"] and set(mixed["seeds"]["0"]["closed_loop"]) == {"router", "mix01"}
