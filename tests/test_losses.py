@@ -73,6 +73,24 @@ def test_skill_diversity_orthogonal_identical_and_hand_value():
   assert float(losses.skill_diversity(batch)) == pytest.approx(0.5)
 
 
+def test_skill_diversity_floor_is_reached_by_any_outputs_whose_directions_cancel():
+  """L_SD = (|sum_k u_k/|u_k||^2 - K) / (K(K-1)): its floor -1/(K-1) holds for every library whose
+  normalised outputs sum to zero, a regular simplex and two antipodal pairs (two skills, each
+  duplicated) alike, which is the state the cpu runs reach (docs/results/paper_cpu/skill_probes.md)."""
+  rng = np.random.default_rng(0)
+  m, d = rng.normal(size=8), 20.0 * rng.normal(size=8)
+  pairs = jnp.asarray(np.stack([m + d, m + d, m - d, m - d]))[None]  # u_k = m +- d, |d| >> |m|
+  simplex = jnp.asarray(np.eye(4) - 0.25)[None]
+  for u in (pairs, simplex):
+    unit = u / jnp.linalg.norm(u, axis=-1, keepdims=True)
+    identity = (jnp.sum(unit.sum(1) ** 2) - 4) / 12
+    assert float(losses.skill_diversity(u)) == pytest.approx(float(identity), abs=1e-6)
+  assert float(losses.skill_diversity(simplex)) == pytest.approx(-1 / 3, abs=1e-6)
+  assert float(losses.skill_diversity(pairs)) == pytest.approx(-1 / 3, abs=2e-3)
+  # and their uniform mixture is the small common part m: the skills cancel
+  assert float(jnp.linalg.norm(pairs[0].mean(0) - m)) < 1e-5
+
+
 def _outputs(skillplug: bool):
   out = dict(pred_actions=jnp.zeros((1, 2, 1)), cvae_mu=jnp.array([[1., 0.]]),
              cvae_logvar=jnp.zeros((1, 2)))
