@@ -195,16 +195,41 @@ def variant_rows(exp: configs.Experiment, summary: dict) -> list[dict]:
                  for name, row in summary[stage]["rows"].items() if row["config"] == r["config"]), None)
 
   out = [dict(variant=v.name, label=v.label or v.name, overrides=list(v.overrides),
-              rows={s: row_of(s, lambda r, v=v: r.get("variant") == v.name) for s in stages})
+              rows={s: row_of(s, lambda r, v=v: r.get("variant") == v.name) for s in stages},
+              routing_entropy_frac=routing_entropy([r for r in summary["pretrain"]["results"]
+                                                    if r.get("variant") == v.name]))
          for v in exp.variants]
   if exp.reference:
     for name, row in summary["pretrain"]["rows"].items():
-      if not any(r.get("reference") and r["config"] == row["config"] for r in summary["pretrain"]["results"]):
+      mine = [r for r in summary["pretrain"]["results"] if r.get("reference") and r["config"] == row["config"]]
+      if not mine:
         continue
       out.append(dict(variant="", label=f"{name} (reference)", overrides=[],
                       rows={s: row_of(s, lambda r, c=row["config"]: bool(r.get("reference")) and r["config"] == c)
-                            for s in stages}))
+                            for s in stages},
+                      routing_entropy_frac=routing_entropy(mine)))
   return out
+
+
+def routing_file(r: dict) -> Path | None:
+  """Where a result's routing array is: beside its run, or (a reference's) where it was published."""
+  if r.get("routing_file") and Path(r["routing_file"]).exists():
+    return Path(r["routing_file"])
+  if r.get("reference"):
+    published = Path(r["reference"]).parent / "routing" / (
+        f"{r['config']['model.policy']}_seed{r['train_seed']}_pretrain_{r['task']}.npz")
+    return published if published.exists() else None
+  return None
+
+
+def routing_entropy(results: list[dict]) -> float | None:
+  """Mean per-query routing entropy as a fraction of log K over these (pretraining) results
+  (1: uniform routing at every query); None without routing arrays (ACT)."""
+  from skillplug_jax.evaluate import routing
+  files = [f for f in map(routing_file, results) if f is not None]
+  if not files:
+    return None
+  return float(sum(s["entropy_frac"] for s in routing.summarise_files(files)) / len(files))
 
 
 def publish(summary: dict, text: str, dest: Path) -> None:
@@ -279,8 +304,8 @@ def variants_report(summary: dict) -> str:
   """One line per arm: its Avg. success in each stage, and each seed's, so that single-seed arms can
   be read against the same seed of the others."""
   stages = [s for s in ("pretrain", "fewshot") if s in summary]
-  head = ["variant", "row", "seeds"] + [f"{'Multi-task' if s == 'pretrain' else 'Few-shot'} Avg. (per seed)"
-                                         for s in stages]
+  head = (["variant", "row", "seeds"] + [f"{'Multi-task' if s == 'pretrain' else 'Few-shot'} Avg. (per seed)"
+                                          for s in stages] + ["routing entropy / log K"])
   lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
   for v in summary["variants"]:
     cells = []
@@ -293,6 +318,8 @@ def variants_report(summary: dict) -> str:
       cells.append(f"{_avg(summary[s]['table'], row)} ({', '.join(f's{k}: {x:.1f}' for k, x in seeds.items())})")
     row = v["rows"]["pretrain"]
     seeds = summary["pretrain"]["rows"][row]["seeds"] if row else []
+    ent = v.get("routing_entropy_frac")
+    cells.append("-" if ent is None else f"{ent:.3f}")
     lines.append(f"| {v['label']} | {row or '-'} | {','.join(map(str, seeds))} | " + " | ".join(cells) + " |")
   return "\n".join(lines)
 

@@ -187,6 +187,9 @@ def test_variants_run_in_their_own_folders_and_join_the_reference_rows(tiny_run)
   assert few_rows["-SD"] == "ACT+SkillPlug (loss.sd=0.0)" and few_rows["K=2"] is None  # named beside the few-shot rows
   text = pipeline.report(summary)
   assert "| -SD | ACT+SkillPlug (loss.sd=0.0, num_skills=3) | 0 |" in text
+  ent = {v["label"]: v["routing_entropy_frac"] for v in summary["variants"]}
+  assert ent["ACT (reference)"] is None and 0.0 < ent["-SD"] <= 1.0 + 1e-6
+  assert 0.0 < ent["ACT+SkillPlug (loss.sd=0.1, num_skills=3) (reference)"] <= 1.0 + 1e-6  # from its published arrays
   pipeline.publish(summary, text, out / "published")
   index = json.loads((out / "published" / "routing" / "index.json").read_text())
   assert sorted(e["file"] for e in index if e["stage"] == "fewshot") == ["nosd_skillplug_seed0_fewshot_mouse_push.npz"]
