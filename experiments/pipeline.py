@@ -363,13 +363,7 @@ def main(argv=None, default_config: str = "cpu", default_out: str = "") -> int:
   envs.quiet_warp()
   try:
     exp = configs.get(args.config, args.set)
-    if args.variants:
-      wanted = args.variants.split(",")
-      unknown = sorted(set(wanted) - {v.name for v in exp.variants})
-      if unknown:
-        raise ValueError(f"unknown variant(s) {unknown} of config {args.config!r}; it has: "
-                         f"{', '.join(v.name for v in exp.variants) or 'none'}")
-      exp = dataclasses.replace(exp, variants=tuple(v for v in exp.variants if v.name in wanted))
+    exp = configs.only(exp, args.variants, args.config)
     if any(not arm.seeds or not arm.policies for _, arm in configs.expand(exp)) or exp.trials < 1 or exp.workers < 1:
       raise ValueError("seeds and policies must be non-empty, trials and workers >= 1")
     out = Path(args.out or f"results/{args.config}")

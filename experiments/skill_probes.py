@@ -235,6 +235,7 @@ def main(argv=None) -> int:
   p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE")
   p.add_argument("--out", default="", help="the pipeline's output folder (default results/<config>)")
   p.add_argument("--publish", default="", help="also copy skill_probes.{json,md} here")
+  p.add_argument("--variants", default="", metavar="A,B", help="of a config with variants, only these")
   p.add_argument("--pairs", action="store_true",
                  help="also roll out every pair of skills half and half (mix<a><b>: mixed-skill rollouts)")
   p.add_argument("--drops", action="store_true",
@@ -250,7 +251,7 @@ def main(argv=None) -> int:
   args = p.parse_args(argv)
   envs.quiet_warp()
   try:
-    exp = configs.get(args.config, args.set)
+    exp = configs.only(configs.get(args.config, args.set), args.variants, args.config)
     out = Path(args.out or f"results/{args.config}")
     tasks = pipeline.tasks_of(exp.train.taskset)
     result = dict(config=args.config, trials=exp.trials, eval_seed=exp.eval_seed, tasks=list(tasks), seeds={},

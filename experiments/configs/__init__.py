@@ -91,6 +91,18 @@ def expand(exp: Experiment) -> list[tuple[Variant, Experiment]]:
   return [(v, train_config.override(base, v.overrides)) for v in exp.variants]
 
 
+def only(exp: Experiment, wanted: str, config: str = "") -> Experiment:
+  """`exp` with only the variants named in `wanted` (comma-separated; empty: all of them)."""
+  if not wanted:
+    return exp
+  names_wanted = wanted.split(",")
+  unknown = sorted(set(names_wanted) - {v.name for v in exp.variants})
+  if unknown:
+    raise ValueError(f"unknown variant(s) {unknown} of config {config or exp.train.preset!r}; it has: "
+                     f"{', '.join(v.name for v in exp.variants) or 'none'}")
+  return dataclasses.replace(exp, variants=tuple(v for v in exp.variants if v.name in names_wanted))
+
+
 def names() -> list[str]:
   return sorted(m.name for m in pkgutil.iter_modules([str(Path(__file__).parent)]) if not m.name.startswith("_"))
 
