@@ -147,6 +147,7 @@ def test_notebooks_execute_on_a_published_run(tiny_run, name, monkeypatch):
     args = ["--config", "quick", "--out", str(tiny_run[1]), "--publish", str(published)]
     assert skill_probes.main(args + [a for o in TINY for a in ("--set", o)]) == 0
   monkeypatch.setenv("SKILLPLUG_KSWEEP", str(tiny_run[1] / "no_k_sweep"))  # only the tiny run's probes
+  monkeypatch.setenv("SKILLPLUG_MIXED", str(tiny_run[1] / "no_mixed"))
   root = Path(__file__).resolve().parents[1] / "notebooks"
   spec = importlib.util.spec_from_file_location("nb_execute", root / "execute.py")
   mod = importlib.util.module_from_spec(spec)
