@@ -7,7 +7,8 @@ pretrained on discoverse7, evaluated, and adapted to the 4 unseen tasks. As
 in the paper, the ablated variants are single-seed diagnostics (seed 0) and
 the full objective (+BSA) is read with its 3 seeds from the `cpu` run
 (docs/results/paper_cpu/summary.json), beside ACT. `--set seeds=0,1,2`
-gives every variant 3 seeds (about 80 more core-minutes each).
+gives every variant 3 seeds (each variant-seed took 48-50 min of one core
+here, pretraining, evaluation and few-shot, beside other work).
 """
 
 import dataclasses

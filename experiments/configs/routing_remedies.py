@@ -2,8 +2,9 @@
 
 Remedies for the degenerate skill library measured on the `cpu` runs
 (docs/results/paper_cpu/skill_probes.md: routing near uniform on every task,
-uniform weights as good as the router's, the K interactor outputs spread as
-a regular simplex, cosine -1/(K-1), that the uniform mixture cancels). Each
+uniform weights as good as the router's, the K interactor outputs in two
+opposite groups of copies, mean cosine -1/(K-1), that the uniform mixture
+cancels; docs/results/k_sweep/skill_probes.md). Each
 variant changes one thing the paper's text leaves open, and is screened by
 closed-loop multi-task success on seed 0 against the `cpu` run (read from
 docs/results/paper_cpu/summary.json); the one worth it gets more seeds
@@ -11,7 +12,7 @@ docs/results/paper_cpu/summary.json); the one worth it gets more seeds
 
   temp0.1   router softmax temperature 0.1 (the same logits, sharper weights)
   film      the FiLM interactor instead of query-offset attention
-  sd0.01    lambda_SD 0.01 instead of 0.1 (less pull towards the cancelling simplex)
+  sd0.01    lambda_SD 0.01 instead of 0.1 (less pull towards the cancelling geometry)
 
 The loss ablation (loss_ablation.py: +KL has no SD at all) is the fourth.
 """
