@@ -8,7 +8,10 @@ the jitted train step (forward, losses, backward, AdamW) on a synthetic
 batch already on the devices: median step time, samples/s, compile time,
 the compiled step's XLA buffers and the process's peak RSS; and the jitted
 inference call `Policy.predict(obs) -> chunk` at batch 1 and 64 (median).
-The SkillPlug overhead is its step time over ACT's at the same preset.
+The SkillPlug overhead (`overhead_vs_act`) is the median ratio of its step
+time to ACT's with the two steps alternated in one more process
+(`--pair-rounds`; `paired` in the JSON); the ratio of the separate runs'
+medians is kept as `overhead_vs_act_separate`.
 
 With `--reference PYTHON` (a Python that has LeRobot; see
 ../shared/tools/ref_act_bench.py for how to build one, outside the project),
@@ -45,15 +48,32 @@ def _median_ms(fn, calls: int) -> tuple[float, float]:
   return 1000 * statistics.median(times), 1000 * min(times)
 
 
-def bench_one(preset: str, policy: str, batch: int, steps: int, infer_batches: tuple[int, ...],
-              infer_calls: int) -> dict:
-  """One preset and policy, in the calling process."""
+def _synthetic_batch(cfg, size: int) -> dict:
+  """A batch of `size` with random contents and the last 5 steps padded."""
+  import numpy as np
+
+  from skillplug_jax.train import loop
+  rng = np.random.default_rng(0)
+  b = {k: np.array(v) for k, v in loop.example_batch(cfg, size).items()}
+  for k, v in b.items():
+    if v.dtype == np.float32:
+      b[k] = rng.normal(size=v.shape).astype(np.float32)
+    elif v.dtype == np.uint8:
+      b[k] = rng.integers(0, 256, size=v.shape, dtype=np.uint8)
+  b["action_mask"][:, -5:] = False
+  return b
+
+
+def _compiled_step(preset: str, policy: str, batch: int):
+  """The jitted train step of (preset, policy) on a synthetic batch already on
+  the devices. Returns (cfg, one_step() that runs a step and waits for it,
+  compile seconds, XLA memory analysis, parameter count, a getter of the
+  current parameters)."""
   import jax
   import jax.numpy as jnp
   import numpy as np
   from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
-  from skillplug_jax.model.policy import Policy
   from skillplug_jax.train import loop
 
   cfg = config.override(config.preset(preset, policy), [f"batch_size={batch}"])
@@ -64,30 +84,28 @@ def bench_one(preset: str, policy: str, batch: int, steps: int, infer_batches: t
   n_params = sum(x.size for x in jax.tree.leaves(params))
   tx = loop.optimizer(cfg, params, cfg.num_steps(1))
   state = jax.device_put(loop.TrainState(jnp.zeros((), jnp.int32), params, tx.init(params)), repl)
-
-  def synthetic(size):
-    rng = np.random.default_rng(0)
-    b = {k: np.array(v) for k, v in loop.example_batch(cfg, size).items()}
-    for k, v in b.items():
-      if v.dtype == np.float32:
-        b[k] = rng.normal(size=v.shape).astype(np.float32)
-      elif v.dtype == np.uint8:
-        b[k] = rng.integers(0, 256, size=v.shape, dtype=np.uint8)
-    b["action_mask"][:, -5:] = False
-    return b
-
-  b = jax.device_put(synthetic(batch), data)
+  b = jax.device_put(_synthetic_batch(cfg, batch), data)
   t = time.perf_counter()
   step = jax.jit(loop.make_train_step(cfg, tx, key), donate_argnums=0, out_shardings=(repl, repl))
   compiled = step.lower(state, b).compile()
   compile_s = time.perf_counter() - t
-  mem = compiled.memory_analysis()
   holder = [state]
 
   def one_step():
     holder[0], m = compiled(holder[0], b)
     jax.block_until_ready(m)
 
+  return cfg, one_step, compile_s, compiled.memory_analysis(), n_params, lambda: holder[0].params
+
+
+def bench_one(preset: str, policy: str, batch: int, steps: int, infer_batches: tuple[int, ...],
+              infer_calls: int) -> dict:
+  """One preset and policy, in the calling process."""
+  import jax
+
+  from skillplug_jax.model.policy import Policy
+
+  cfg, one_step, compile_s, mem, n_params, current_params = _compiled_step(preset, policy, batch)
   t = time.perf_counter()
   one_step()  # the first call also allocates; not timed
   if steps <= 0:  # about 10 s of timed steps, at least 5
@@ -96,10 +114,11 @@ def bench_one(preset: str, policy: str, batch: int, steps: int, infer_batches: t
 
   model = Policy(cfg.model)
   predict = jax.jit(lambda p, obs: model.apply({"params": p}, obs, method=Policy.predict)[0])
-  params = holder[0].params
+  params = current_params()
   infer = {}
   for size in infer_batches:
-    obs = {k: v for k, v in synthetic(size).items() if k not in ("actions", "action_mask", "task_id")}
+    obs = {k: v for k, v in _synthetic_batch(cfg, size).items()
+           if k not in ("actions", "action_mask", "task_id")}
     obs = jax.device_put(obs)
     t = time.perf_counter()
     jax.block_until_ready(predict(params, obs))
@@ -118,23 +137,49 @@ def bench_one(preset: str, policy: str, batch: int, steps: int, infer_batches: t
               infer_compile_s={k: v["compile_s"] for k, v in infer.items()})
 
 
-def _child(queue, args):
+def bench_pair(preset: str, batch: int, rounds: int) -> dict:
+  """ACT's and ACT+SkillPlug's steps alternated in one process, `rounds` of
+  each: the overhead ratio compares steps taken seconds apart, so a machine
+  that speeds up or slows down during the run (this VM drifts by 10-20% over
+  minutes) shifts both alike, where separate processes run minutes apart."""
+  steps = {}
+  for policy in ("act", "skillplug"):
+    _, one_step, *_ = _compiled_step(preset, policy, batch)
+    one_step()  # allocation, not timed
+    steps[policy] = one_step
+  times = {policy: [] for policy in steps}
+  for _ in range(rounds):
+    for policy, one_step in steps.items():
+      t = time.perf_counter()
+      one_step()
+      times[policy].append(time.perf_counter() - t)
+  med = {policy: 1000 * statistics.median(v) for policy, v in times.items()}
+  paired = [s / a for a, s in zip(times["act"], times["skillplug"])]
+  return dict(preset=preset, batch=batch, rounds=rounds,
+              act_step_ms=round(med["act"], 1), skillplug_step_ms=round(med["skillplug"], 1),
+              ratio_of_medians=round(med["skillplug"] / med["act"], 3),
+              median_paired_ratio=round(statistics.median(paired), 3),
+              paired_ratio_range=[round(min(paired), 3), round(max(paired), 3)])
+
+
+def _child(queue, fn, args):
   try:
-    queue.put(bench_one(*args))
+    queue.put(fn(*args))
   except BaseException as e:  # noqa: BLE001 - reported by the parent
     queue.put(e)
 
 
-def bench_in_process(*args) -> dict:
-  """`bench_one` in a fresh process: its own peak RSS and compile caches."""
+def bench_in_process(fn, *args) -> dict:
+  """`fn(*args)` (bench_one, bench_pair) in a fresh process: its own peak RSS
+  and compile caches."""
   ctx = mp.get_context("spawn")
   queue = ctx.Queue()
-  proc = ctx.Process(target=_child, args=(queue, args))
+  proc = ctx.Process(target=_child, args=(queue, fn, args))
   proc.start()
   result = queue.get()
   proc.join()
   if isinstance(result, BaseException):
-    raise RuntimeError(f"benchmark of {args[:2]} failed: {result!r}") from result
+    raise RuntimeError(f"{fn.__name__}{args[:2]} failed: {result!r}") from result
   print(json.dumps(result), flush=True)
   return result
 
@@ -159,6 +204,9 @@ def main(argv=None):
   p.add_argument("--batch", type=int, default=0, help="batch size (0: each preset's own)")
   p.add_argument("--steps", type=int, default=0,
                  help="timed train steps, median reported (0: about 10 s of them, at least 5)")
+  p.add_argument("--pair-rounds", type=int, default=10,
+                 help="ACT and ACT+SkillPlug steps alternated in one process for the overhead "
+                      "ratio (0: only the ratio of the separate runs)")
   p.add_argument("--infer-batches", default="1,64")
   p.add_argument("--infer-calls", type=int, default=20, help="timed inference calls per batch (median)")
   p.add_argument("--reference", metavar="PYTHON", default=os.environ.get("REF_PYTHON", ""),
@@ -172,10 +220,15 @@ def main(argv=None):
   rows = []
   for preset in args.presets.split(","):
     batch = args.batch or config.preset(preset).batch_size
-    pair = {pol: bench_in_process(preset, pol, batch, args.steps, infer_batches, args.infer_calls)
+    pair = {pol: bench_in_process(bench_one, preset, pol, batch, args.steps, infer_batches,
+                                  args.infer_calls)
             for pol in args.policies.split(",")}
     if "act" in pair and "skillplug" in pair:
-      pair["skillplug"]["overhead_vs_act"] = round(pair["skillplug"]["step_ms"] / pair["act"]["step_ms"], 3)
+      sp = pair["skillplug"]
+      sp["overhead_vs_act_separate"] = round(sp["step_ms"] / pair["act"]["step_ms"], 3)
+      if args.pair_rounds > 0:
+        sp["paired"] = bench_in_process(bench_pair, preset, batch, args.pair_rounds)
+        sp["overhead_vs_act"] = sp["paired"]["median_paired_ratio"]
     rows += list(pair.values())
   if args.reference:
     refs.append(reference(args.reference, args.reference_steps))
