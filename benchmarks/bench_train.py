@@ -147,6 +147,11 @@ def bench_pair(preset: str, batch: int, rounds: int) -> dict:
     _, one_step, *_ = _compiled_step(preset, policy, batch)
     one_step()  # allocation, not timed
     steps[policy] = one_step
+  if rounds <= 0:  # about 20 s of alternated steps, 10 to 300 rounds
+    t = time.perf_counter()
+    for one_step in steps.values():
+      one_step()
+    rounds = int(min(max(20 / (time.perf_counter() - t), 10), 300))
   times = {policy: [] for policy in steps}
   for _ in range(rounds):
     for policy, one_step in steps.items():
@@ -204,9 +209,10 @@ def main(argv=None):
   p.add_argument("--batch", type=int, default=0, help="batch size (0: each preset's own)")
   p.add_argument("--steps", type=int, default=0,
                  help="timed train steps, median reported (0: about 10 s of them, at least 5)")
-  p.add_argument("--pair-rounds", type=int, default=10,
-                 help="ACT and ACT+SkillPlug steps alternated in one process for the overhead "
-                      "ratio (0: only the ratio of the separate runs)")
+  p.add_argument("--pair-rounds", type=int, default=0,
+                 help="rounds of ACT's and ACT+SkillPlug's steps alternated in one process for the "
+                      "overhead ratio (0: about 20 s of them, at least 10; -1: none, only the ratio "
+                      "of the separate runs)")
   p.add_argument("--infer-batches", default="1,64")
   p.add_argument("--infer-calls", type=int, default=20, help="timed inference calls per batch (median)")
   p.add_argument("--reference", metavar="PYTHON", default=os.environ.get("REF_PYTHON", ""),
@@ -226,7 +232,7 @@ def main(argv=None):
     if "act" in pair and "skillplug" in pair:
       sp = pair["skillplug"]
       sp["overhead_vs_act_separate"] = round(sp["step_ms"] / pair["act"]["step_ms"], 3)
-      if args.pair_rounds > 0:
+      if args.pair_rounds >= 0:
         sp["paired"] = bench_in_process(bench_pair, preset, batch, args.pair_rounds)
         sp["overhead_vs_act"] = sp["paired"]["median_paired_ratio"]
     rows += list(pair.values())

@@ -49,6 +49,15 @@ def test_overrides_reach_every_level_and_bad_ones_are_named():
     dataclasses.replace(exp.train, lr_schedule="linear")
 
 
+def test_a_variant_may_set_its_own_seeds():
+  arms = {v.name: e for v, e in configs.expand(configs.get("routing_remedies"))}
+  assert arms["film"].seeds == (0, 1, 2) and arms["film"].train.model.interactor == "film"
+  assert arms["temp0.1"].seeds == (0,) and arms["sd0.01"].train.loss.sd == 0.01
+  # a command-line seeds override reaches the other arms; the variant's own setting wins
+  arms = {v.name: e for v, e in configs.expand(configs.get("routing_remedies", ["seeds=1"]))}
+  assert arms["film"].seeds == (0, 1, 2) and arms["sd0.01"].seeds == (1,)
+
+
 def test_fewshot_protocol_comes_from_the_source_runs_config(tmp_path):
   quick = train_config.preset("quick", "skillplug")
   few = fewshot.fewshot_config(quick, tmp_path / "src", "block_place", "discoverse_fewshot4", 10)
