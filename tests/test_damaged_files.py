@@ -114,10 +114,19 @@ def largest_file(step_dir: Path) -> Path:
   return max((p for p in step_dir.rglob("*") if p.is_file()), key=lambda p: p.stat().st_size)
 
 
-def test_damaged_checkpoint_fails_evaluation_naming_it(finished_run, tmp_path, capsys):
+def largest_array_file(step_dir: Path) -> Path:
+  return max((p for p in step_dir.glob("*/ocdbt.process_*/d/*") if p.is_file()), key=lambda p: p.stat().st_size)
+
+
+# Which file is the largest differs between runs (OCDBT packs the arrays into
+# a varying number of files, and the tiny model's _METADATA is as large), so
+# each kind is damaged on purpose: arrays, orbax's JSON tree, and any largest.
+@pytest.mark.parametrize("pick", [largest_array_file, lambda d: d / "default" / "_METADATA", largest_file],
+                         ids=["array-file", "metadata", "largest"])
+def test_damaged_checkpoint_fails_evaluation_naming_it(finished_run, tmp_path, capsys, pick):
   run = copy_run(finished_run[0], tmp_path / "run")
   step6 = run / "checkpoints" / "6"
-  bad = largest_file(step6)
+  bad = pick(step6)
   truncate(bad)
   with pytest.raises(checkpoint.DamagedCheckpoint,
                      match=f"checkpoint {re.escape(str(step6))} is damaged .*{bad.name} is truncated"

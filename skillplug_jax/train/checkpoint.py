@@ -184,8 +184,11 @@ def check_index(path: Path) -> None:
   it points to must lie inside an existing file: a truncated or missing file
   is named here. Orbax reads all arrays at once; when several fail, the reads
   still in flight after its first error print hundreds of "Event loop is
-  closed" tracebacks, which this check spares the common cases of.
+  closed" tracebacks, which this check spares the common cases of. Orbax's
+  JSON files beside the index (the step's _CHECKPOINT_METADATA, each item's
+  _METADATA and _sharding) must parse, or are named as truncated too.
   """
+  _check_json(path, Path(path) / "_CHECKPOINT_METADATA")
   for item in sorted(p for p in Path(path).iterdir() if p.is_dir()):
     if not (item / "manifest.ocdbt").exists():
       if any(item.glob("ocdbt.process_*")):
@@ -193,6 +196,8 @@ def check_index(path: Path) -> None:
       continue  # not an OCDBT item
     if not (item / "_METADATA").exists():  # orbax's tree of the arrays' names
       raise DamagedCheckpoint(path, f"{item / '_METADATA'} is missing")
+    _check_json(path, item / "_METADATA")
+    _check_json(path, item / "_sharding")
     try:
       base = ts.KvStore.open({"driver": "file", "path": f"{item.absolute()}/"}).result()
       versions = ts.ocdbt.dump(base).result().get("versions") or [{}]
@@ -211,6 +216,16 @@ def check_index(path: Path) -> None:
       raise
     except (ValueError, OSError) as e:  # TensorStore: a node that cannot be read or decoded
       raise DamagedCheckpoint(path, short_reason(e)) from e
+
+
+def _check_json(path: Path, file: Path) -> None:
+  """`file`, where it exists, must be whole JSON (orbax writes these files whole)."""
+  if not file.is_file():
+    return
+  try:
+    json.loads(file.read_bytes())
+  except ValueError as e:  # JSONDecodeError and UnicodeDecodeError
+    raise DamagedCheckpoint(path, f"{file} is truncated or corrupt (not valid JSON: {e})") from e
 
 
 def _check_reference(path: Path, item: Path, ref: str) -> None:
