@@ -22,6 +22,8 @@ import flax.linen as nn
 import jax
 import jax.numpy as jnp
 
+from skillplug_jax.model.dropout import keep_mask
+
 _kernel_init = nn.initializers.lecun_normal()
 
 
@@ -98,7 +100,7 @@ class MultiHeadAttention(nn.Module):
     weights = jax.nn.softmax(logits).astype(self.dtype)
     if not deterministic and self.dropout_rate > 0.0:
       keep_prob = 1.0 - self.dropout_rate
-      keep = jax.random.bernoulli(self.make_rng("dropout"), keep_prob, weights.shape[-2:])
+      keep = keep_mask(self.make_rng("dropout"), keep_prob, weights.shape[-2:])
       weights = weights * (keep.astype(self.dtype) / jnp.asarray(keep_prob, self.dtype))
     y = jnp.swapaxes(weights @ v, -3, -2)  # [..., Tq, H, d]
     return _OutProjection(features, self.dtype, name="out")(y)

@@ -13,6 +13,7 @@ import flax.linen as nn
 import jax.numpy as jnp
 
 from skillplug_jax.model.attention import MultiHeadAttention
+from skillplug_jax.model.dropout import Dropout
 from skillplug_jax.model.transformer import FeedForward, with_pos
 
 
@@ -41,10 +42,10 @@ class QueryOffsetInteractor(nn.Module):
     y = MultiHeadAttention(
         num_heads=self.heads, dropout_rate=self.dropout, dtype=self.dtype, name="attn")(
             keys, keys, hn, deterministic=deterministic, query_offset=offset[:, :, None, :])
-    u = h[:, None] + nn.Dropout(self.dropout)(y, deterministic=deterministic)
+    u = h[:, None] + Dropout(self.dropout)(y, deterministic=deterministic)
     y = nn.LayerNorm(dtype=self.dtype, name="norm2")(u)
     y = FeedForward(self.hidden, self.ff, self.dropout, self.dtype, name="ff")(y, deterministic)
-    return u + nn.Dropout(self.dropout)(y, deterministic=deterministic)
+    return u + Dropout(self.dropout)(y, deterministic=deterministic)
 
 
 class FiLMInteractor(nn.Module):
@@ -65,7 +66,7 @@ class FiLMInteractor(nn.Module):
     hn = nn.LayerNorm(dtype=self.dtype, name="norm")(h)[:, None]
     y = hn * (1.0 + gamma[:, :, None]) + beta[:, :, None]
     y = FeedForward(self.hidden, self.ff, self.dropout, self.dtype, name="ff")(y, deterministic)
-    return h[:, None] + nn.Dropout(self.dropout)(y, deterministic=deterministic)
+    return h[:, None] + Dropout(self.dropout)(y, deterministic=deterministic)
 
 
 INTERACTORS = {"query_offset": QueryOffsetInteractor, "film": FiLMInteractor}

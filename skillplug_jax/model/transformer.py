@@ -21,6 +21,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from skillplug_jax.model.attention import MultiHeadAttention
+from skillplug_jax.model.dropout import Dropout
 
 
 def sinusoidal_1d(length: int, dim: int) -> np.ndarray:
@@ -55,7 +56,7 @@ class FeedForward(nn.Module):
   @nn.compact
   def __call__(self, x, deterministic: bool):
     x = nn.relu(nn.Dense(self.ff, dtype=self.dtype, name="fc1")(x))
-    x = nn.Dropout(self.dropout)(x, deterministic=deterministic)
+    x = Dropout(self.dropout)(x, deterministic=deterministic)
     return nn.Dense(self.hidden, dtype=self.dtype, name="fc2")(x)
 
 
@@ -83,7 +84,7 @@ class EncoderLayer(nn.Module):
 
   @nn.compact
   def __call__(self, x, deterministic: bool, mask=None, pos=None, outputs=None):
-    drop = lambda y: nn.Dropout(self.dropout)(y, deterministic=deterministic)
+    drop = lambda y: Dropout(self.dropout)(y, deterministic=deterministic)
     norm1 = nn.LayerNorm(dtype=self.dtype, name="norm1")
     norm2 = nn.LayerNorm(dtype=self.dtype, name="norm2")
     attn = _attention(self.heads, self.dropout, self.dtype, "self_attn")
@@ -114,7 +115,7 @@ class DecoderLayer(nn.Module):
 
   @nn.compact
   def __call__(self, x, memory, deterministic: bool, query_pos=None, memory_pos=None):
-    drop = lambda y: nn.Dropout(self.dropout)(y, deterministic=deterministic)
+    drop = lambda y: Dropout(self.dropout)(y, deterministic=deterministic)
     norms = [nn.LayerNorm(dtype=self.dtype, name=f"norm{i}") for i in (1, 2, 3)]
     self_attn = _attention(self.heads, self.dropout, self.dtype, "self_attn")
     cross_attn = _attention(self.heads, self.dropout, self.dtype, "cross_attn")
