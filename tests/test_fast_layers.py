@@ -1,10 +1,10 @@
 """The layers rewritten for speed (issue 14) compute what they replace.
 
 Each is compared, values and gradients, with the library computation it
-stands for: `patch_conv` with `lax.conv_general_dilated`, our attention with
-flax's `MultiHeadDotProductAttention` on the same parameters, the CVAE's
-CLS-only last layer with the full stack, and the interactor's shared keys
-with keys broadcast over the skills.
+stands for: `patch_conv` with `lax.conv_general_dilated`, `max_pool` with
+flax's, our attention with flax's `MultiHeadDotProductAttention` on the same
+parameters, the CVAE's CLS-only last layer with the full stack, and the
+interactor's shared keys with keys broadcast over the skills.
 """
 
 import flax.linen as nn
@@ -16,7 +16,7 @@ from jax import lax
 
 from skillplug_jax.model import resnet
 from skillplug_jax.model.attention import MultiHeadAttention
-from skillplug_jax.model.resnet import ResNet18, patch_conv
+from skillplug_jax.model.resnet import ResNet18, max_pool, patch_conv
 from skillplug_jax.model.transformer import TransformerEncoder
 
 DN = ("NHWC", "HWIO", "NHWC")
@@ -60,6 +60,15 @@ def test_resnet_with_patch_conv_equals_plain_convolutions(monkeypatch):
   ours = value_and_grad()
   monkeypatch.setattr(resnet, "PATCH_CONV_MAX_CELLS", 0)  # every layer a convolution
   _close(ours, value_and_grad(), 1e-3)
+
+
+@pytest.mark.parametrize("hw", [(32, 32), (7, 9), (2, 2)])
+def test_max_pool_equals_flax_max_pool(hw):
+  x = jax.random.normal(jax.random.key(0), (3, *hw, 5))  # continuous: no ties
+  ref = lambda v: nn.max_pool(v, (3, 3), (2, 2), padding="SAME")
+  _close(max_pool(x, 3, 2), ref(x), 0)
+  loss = lambda pool: lambda v: jnp.sum(jnp.sin(pool(v)))
+  _close(jax.grad(loss(lambda v: max_pool(v, 3, 2)))(x), jax.grad(loss(ref))(x), 1e-6)
 
 
 @pytest.mark.parametrize("q_shape,kv_shape", [((3, 5, 32), (3, 7, 32)), ((2, 3, 6, 32), (2, 3, 6, 32))])

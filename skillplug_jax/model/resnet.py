@@ -55,6 +55,29 @@ def patch_conv(lhs, rhs, window_strides, padding, lhs_dilation=None, rhs_dilatio
   return jnp.dot(patches, rhs.reshape(kh * kw * cin, cout), precision=precision)
 
 
+def max_pool(x, window: int = 3, stride: int = 2):
+  """`nn.max_pool(x, (window,) * 2, (stride,) * 2, padding='SAME')` for NHWC x,
+  as the maximum of window**2 strided slices.
+
+  The values are the same. The gradient differs only where two cells of a
+  window tie (jnp.maximum splits it, reduce_window gives it to one); the
+  stem's input is a ReLU output, whose ties are at 0, where the ReLU passes
+  no gradient anyway. XLA:CPU lowers reduce_window's gradient through
+  int32 index maps of the whole padded map (5 ops, about 35 ms of a paper
+  step's thread time, issue 14); the slices' gradient is elementwise.
+  """
+  (ph, pw) = lax.padtype_to_pads(x.shape[1:3], (window, window), (stride, stride), "SAME")
+  oh = (x.shape[1] + sum(ph) - window) // stride + 1
+  ow = (x.shape[2] + sum(pw) - window) // stride + 1
+  x = jnp.pad(x, ((0, 0), tuple(ph), tuple(pw), (0, 0)), constant_values=-jnp.inf)
+  out = None
+  for i in range(window):
+    for j in range(window):
+      cell = x[:, i:i + stride * (oh - 1) + 1:stride, j:j + stride * (ow - 1) + 1:stride]
+      out = cell if out is None else jnp.maximum(out, cell)
+  return out
+
+
 def _norm(channels: int, dtype, zero_scale: bool = False) -> nn.GroupNorm:
   # 32 groups as in Wu & He (2018), fewer when narrow test backbones need it.
   return nn.GroupNorm(
@@ -97,7 +120,7 @@ class ResNet18(nn.Module):
     x = nn.Conv(self.width, (7, 7), (2, 2), padding=[(3, 3), (3, 3)],
                 use_bias=False, dtype=self.dtype, conv_general_dilated=patch_conv, name="stem")(x)
     x = nn.relu(_norm(self.width, self.dtype)(x))
-    x = nn.max_pool(x, (3, 3), (2, 2), padding="SAME")
+    x = max_pool(x, 3, 2)
     for i, n_blocks in enumerate(self.stage_sizes):
       for j in range(n_blocks):
         x = BasicBlock(self.width * 2**i, strides=2 if (i > 0 and j == 0) else 1,
