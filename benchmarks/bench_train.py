@@ -108,8 +108,8 @@ def bench_one(preset: str, policy: str, batch: int, steps: int, infer_batches: t
   cfg, one_step, compile_s, mem, n_params, current_params = _compiled_step(preset, policy, batch)
   t = time.perf_counter()
   one_step()  # the first call also allocates; not timed
-  if steps <= 0:  # about 10 s of timed steps, at least 5
-    steps = int(min(max(10 / (time.perf_counter() - t), 5), 300))
+  if steps <= 0:  # about 20 s of timed steps, at least 10
+    steps = int(min(max(20 / (time.perf_counter() - t), 10), 300))
   step_ms, step_min_ms = _median_ms(one_step, steps)
 
   model = Policy(cfg.model)
@@ -208,7 +208,7 @@ def main(argv=None):
   p.add_argument("--policies", default="act,skillplug")
   p.add_argument("--batch", type=int, default=0, help="batch size (0: each preset's own)")
   p.add_argument("--steps", type=int, default=0,
-                 help="timed train steps, median reported (0: about 10 s of them, at least 5)")
+                 help="timed train steps, median reported (0: about 20 s of them, at least 10)")
   p.add_argument("--pair-rounds", type=int, default=0,
                  help="rounds of ACT's and ACT+SkillPlug's steps alternated in one process for the "
                       "overhead ratio (0: about 20 s of them, at least 10; -1: none, only the ratio "
