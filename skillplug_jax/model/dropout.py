@@ -25,6 +25,7 @@ the identity.
 
 from __future__ import annotations
 
+import math
 from typing import Sequence
 
 import flax.linen as nn
@@ -47,12 +48,10 @@ def keep_mask(key: jax.Array, keep_prob: float, shape: Sequence[int]) -> jax.Arr
   if keep_prob >= 1.0:
     return jnp.ones(shape, bool)
   seed = jax.random.bits(key, (2,), jnp.uint32)
-  size = 1
-  for n in shape:
-    size *= n
+  size = math.prod(shape)
   if size >= 2**32:
     raise ValueError(f"a dropout mask of {size} elements exceeds the 2**32 hash indices")
-  index = lax.iota(jnp.uint32, size).reshape(shape) if shape else jnp.zeros((), jnp.uint32)
+  index = lax.iota(jnp.uint32, size).reshape(shape)
   bits = _lowbias32(_lowbias32(index ^ seed[0]) + seed[1])
   return bits < jnp.uint32(min(int(round(keep_prob * 2.0**32)), 2**32 - 1))
 
@@ -64,7 +63,8 @@ def dropout(key: jax.Array, rate: float, x: jax.Array, broadcast_dims: Sequence[
   if rate >= 1.0:
     return jnp.zeros_like(x)
   keep_prob = 1.0 - rate
-  shape = [1 if d in {a % x.ndim for a in broadcast_dims} else n for d, n in enumerate(x.shape)]
+  shared = {d % x.ndim for d in broadcast_dims}
+  shape = [1 if d in shared else n for d, n in enumerate(x.shape)]
   keep = jnp.broadcast_to(keep_mask(key, keep_prob, shape), x.shape)
   return jnp.where(keep, x / jnp.asarray(keep_prob, x.dtype), jnp.zeros((), x.dtype))
 
