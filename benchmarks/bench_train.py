@@ -110,7 +110,9 @@ def bench_one(preset: str, policy: str, batch: int, steps: int, infer_batches: t
   one_step()  # the first call also allocates; not timed
   if steps <= 0:  # about 20 s of timed steps, at least 10
     steps = int(min(max(20 / (time.perf_counter() - t), 10), 300))
+  usage = resource.getrusage(resource.RUSAGE_SELF)
   step_ms, step_min_ms = _median_ms(one_step, steps)
+  after = resource.getrusage(resource.RUSAGE_SELF)
 
   model = Policy(cfg.model)
   predict = jax.jit(lambda p, obs: model.apply({"params": p}, obs, method=Policy.predict)[0])
@@ -133,6 +135,10 @@ def bench_one(preset: str, policy: str, batch: int, steps: int, infer_batches: t
               xla_temp_mb=round(mem.temp_size_in_bytes / 2**20, 1) if mem else None,
               xla_args_mb=round(mem.argument_size_in_bytes / 2**20, 1) if mem else None,
               peak_rss_mb=round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024, 1),
+              # the kernel's share: page faults of buffers mapped afresh each call (Makefile's GLIBC_TUNABLES)
+              minor_faults_per_step=round((after.ru_minflt - usage.ru_minflt) / steps),
+              cpu_ms_per_step=dict(user=round(1000 * (after.ru_utime - usage.ru_utime) / steps, 1),
+                                   sys=round(1000 * (after.ru_stime - usage.ru_stime) / steps, 1)),
               infer_ms={k: v["ms"] for k, v in infer.items()},
               infer_compile_s={k: v["compile_s"] for k, v in infer.items()})
 
@@ -189,14 +195,22 @@ def bench_in_process(fn, *args) -> dict:
   return result
 
 
-def reference(python: str, steps: int) -> dict:
-  """LeRobot's ACT at the paper shapes (ref_act_bench.py), its JSON line."""
+def reference(python: str, steps: int, tunables: str = "") -> dict:
+  """LeRobot's ACT at the paper shapes (ref_act_bench.py), its JSON line.
+
+  `tunables`: GLIBC_TUNABLES for its process; by default none, as LeRobot's
+  users run it (ours may have the Makefile's, which the JSON records).
+  """
   if not REFERENCE_TOOL.exists():
     raise FileNotFoundError(f"the reference benchmark {REFERENCE_TOOL} is missing")
   cmd = [python, str(REFERENCE_TOOL), "--dec-layers", "7", "--steps", str(steps), "--warmup", "2"]
-  print("reference:", " ".join(cmd), flush=True)
-  out = subprocess.run(cmd, check=True, capture_output=True, text=True)
+  env = {k: v for k, v in os.environ.items() if k != "GLIBC_TUNABLES"}
+  if tunables:
+    env["GLIBC_TUNABLES"] = tunables
+  print("reference:", f"GLIBC_TUNABLES={tunables}" if tunables else "", " ".join(cmd), flush=True)
+  out = subprocess.run(cmd, check=True, capture_output=True, text=True, env=env)
   row = json.loads(out.stdout.strip().splitlines()[-1])
+  row["glibc_tunables"] = tunables
   print(json.dumps({k: row[k] for k in ("train_step_ms_median", "samples_per_s", "infer_ms_b1", "infer_ms_b64")}),
         flush=True)
   return row
@@ -236,18 +250,29 @@ def main(argv=None):
         sp["paired"] = bench_in_process(bench_pair, preset, batch, args.pair_rounds)
         sp["overhead_vs_act"] = sp["paired"]["median_paired_ratio"]
     rows += list(pair.values())
+  tunables = os.environ.get("GLIBC_TUNABLES", "")
+  tuned_refs = []
   if args.reference:
     refs.append(reference(args.reference, args.reference_steps))
+    if tunables:  # and LeRobot with the allocator settings ours ran with
+      tuned_refs.append(reference(args.reference, args.reference_steps, tunables))
+
+    def speedups(row, against):
+      return [dict(samples_per_s=round(row["samples_per_s"] / r["samples_per_s"], 2),
+                   infer_b1=round(r["infer_ms_b1"] / row["infer_ms"]["1"], 2)
+                   if "1" in row["infer_ms"] else None) for r in against]
+
     for row in rows:
       if row["preset"] == "paper":
-        row["vs_reference"] = [dict(samples_per_s=round(row["samples_per_s"] / r["samples_per_s"], 2),
-                                    infer_b1=round(r["infer_ms_b1"] / row["infer_ms"]["1"], 2)
-                                    if "1" in row["infer_ms"] else None) for r in refs]
+        row["vs_reference"] = speedups(row, refs)
+        if tuned_refs:
+          row["vs_reference_same_tunables"] = speedups(row, tuned_refs)
   import jax
   result = dict(devices=[str(d) for d in jax.devices()], cpu=platform.processor() or platform.machine(),
                 cpu_count=os.cpu_count(), xla_flags=os.environ.get("XLA_FLAGS", ""),
+                glibc_tunables=tunables,
                 jax=jax.__version__, command=" ".join([sys.executable, "-m", "benchmarks.bench_train"] + (argv or sys.argv[1:])),
-                results=rows, reference=refs)
+                results=rows, reference=refs, reference_same_tunables=tuned_refs)
   write_json_atomic(args.out, result)
   print(f"wrote {args.out}")
 
