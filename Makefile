@@ -15,10 +15,10 @@ BACKEND ?= auto
 
 export MUJOCO_GL ?= egl
 # glibc malloc, for XLA:CPU: each call's temporary buffer (640 MB in the paper-shape train
-# step) gets a fresh mmap and is faulted in 4 KB page by page (166K faults, 0.4-0.9 s of kernel
+# step) gets a fresh mmap and is faulted in 4 KB page by page (166K faults, 0.4-1.2 s of kernel
 # time per step on this project's CPU). hugetlb=1 puts such blocks on transparent huge pages:
 # ~900 faults. (One arena that is never trimmed would reuse the pages outright, but the
-# contention doubled the quick preset's step.) README "Speed"; tests/test_malloc_tunables.py.
+# contention doubled the quick preset's step.) README "Measured: training and inference speed".
 export GLIBC_TUNABLES ?= glibc.malloc.hugetlb=1
 
 .PHONY: install test quickstart paper-cpu loss-ablation k-sweep notebooks experts demos pretrain fewshot eval bench-envs bench-loader bench-train bench-eval bench scenes clean

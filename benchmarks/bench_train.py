@@ -207,7 +207,7 @@ def reference(python: str, steps: int, tunables: str = "") -> dict:
   env = {k: v for k, v in os.environ.items() if k != "GLIBC_TUNABLES"}
   if tunables:
     env["GLIBC_TUNABLES"] = tunables
-  print("reference:", f"GLIBC_TUNABLES={tunables}" if tunables else "", " ".join(cmd), flush=True)
+  print("reference:", *([f"GLIBC_TUNABLES={tunables}"] if tunables else []), *cmd, flush=True)
   out = subprocess.run(cmd, check=True, capture_output=True, text=True, env=env)
   row = json.loads(out.stdout.strip().splitlines()[-1])
   row["glibc_tunables"] = tunables

@@ -3,11 +3,11 @@
 XLA:CPU allocates each call's temporary buffer (640 MB in the paper-shape
 train step) with malloc and frees it at the end. glibc serves a block that
 large with a fresh mmap and returns it with munmap, so every call faults its
-pages in again, 4 KB at a time: 166K page faults and 0.4-0.9 s of kernel
-time per paper step on this project's CPU (README, "Speed"). With
-glibc.malloc.hugetlb=1 such blocks are madvised onto transparent huge pages,
-512 times fewer faults. glibc ignores a misspelt tunable without a word;
-these tests are what notice.
+pages in again, 4 KB at a time: 166K page faults and 0.4-1.2 s of kernel
+time per paper step on this project's CPU (README, "Measured: training
+and inference speed"). With glibc.malloc.hugetlb=1 such blocks are madvised
+onto transparent huge pages: about 900 faults per step. glibc ignores a
+misspelt tunable without a word; these tests are what notice.
 """
 
 from __future__ import annotations
@@ -97,8 +97,9 @@ def transparent_huge_pages() -> str:
 
 
 @glibc
-@pytest.mark.skipif(transparent_huge_pages() not in ("always", "madvise"),
-                    reason="the kernel has no transparent huge pages for hugetlb=1 to use")
+@pytest.mark.skipif(transparent_huge_pages() != "madvise",
+                    reason="hugetlb=1 acts where THP is 'madvise' ('always' already puts large "
+                           "mappings on huge pages, 'never' has none)")
 def test_makefile_tunables_cut_the_per_call_page_faults():
   # 64 MB in 4 KB pages is 16,384 faults per call (the control: the probe
   # does allocate afresh each call); on 2 MB pages, a few hundred.
