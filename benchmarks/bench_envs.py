@@ -58,8 +58,9 @@ from envs import robot, rollout  # noqa: E402
 from skillplug_jax.atomic_json import write_json_atomic  # noqa: E402
 from skillplug_jax.evaluate.policy_controller import policy_controller  # noqa: E402
 from skillplug_jax.evaluate.protocol import evaluate_task  # noqa: E402
-from skillplug_jax.train import config as train_config  # noqa: E402
+from skillplug_jax.experiment import preset  # noqa: E402
 from skillplug_jax.train import loop  # noqa: E402
+from skillplug_jax.train.config import TrainConfig  # noqa: E402
 
 BACKENDS = ("mujoco", "mjx-warp")
 TARGET_BATCH = 64
@@ -109,8 +110,8 @@ def measure(task, backend, batch, cameras, steps, image_size):
 
 def untrained_controller():
   """An untrained ACT state policy (quick config) whose actions stay near the home pose."""
-  m = dataclasses.replace(train_config.preset("quick").model, policy="act")
-  params = loop.init_params(train_config.TrainConfig(preset="quick", model=m), jax.random.PRNGKey(0))
+  m = dataclasses.replace(preset("quick").model, policy="act")
+  params = loop.init_params(TrainConfig(preset="quick", model=m), jax.random.PRNGKey(0))
   stats = {"action": {"mean": list(robot.HOME_QPOS), "std": [0.01] * 7},
            "joint_pos": {"mean": [0.0] * 7, "std": [1.0] * 7}}
   return policy_controller(m, params, stats, name="untrained act")

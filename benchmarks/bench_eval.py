@@ -34,9 +34,10 @@ import jax.numpy as jnp
 import envs
 from envs import robot, rollout as env_rollout
 from envs.rollout import Controller, run_episodes as evaluate
+from skillplug_jax import experiment
 from skillplug_jax.atomic_json import write_json_atomic
 from skillplug_jax.evaluate.policy_controller import policy_controller
-from skillplug_jax.train import config, loop
+from skillplug_jax.train import loop
 
 
 def _short_env(task: str, steps: int, per_device: int, render: bool, image_size, backend: str):
@@ -57,7 +58,7 @@ def _best(fn, repeats: int) -> float:
 
 
 def bench(task: str, preset: str, policy: str, batch: int, steps: int, repeats: int, backend: str) -> dict:
-  cfg = config.preset(preset, policy)
+  cfg = experiment.preset(preset, policy)
   m = cfg.model
   benv = _short_env(task, steps, batch, m.use_images, m.image_size, backend)
   keys = env_rollout.reset_keys(0, batch)

@@ -33,6 +33,7 @@ import sys
 import time
 from pathlib import Path
 
+from skillplug_jax import experiment
 from skillplug_jax.atomic_json import write_json_atomic
 from skillplug_jax.train import config
 
@@ -76,7 +77,7 @@ def _compiled_step(preset: str, policy: str, batch: int):
 
   from skillplug_jax.train import loop
 
-  cfg = config.override(config.preset(preset, policy), [f"batch_size={batch}"])
+  cfg = config.override(experiment.preset(preset, policy), [f"batch_size={batch}"])
   mesh = Mesh(np.asarray(jax.devices()), ("data",))
   repl, data = NamedSharding(mesh, PartitionSpec()), NamedSharding(mesh, PartitionSpec("data"))
   key = jax.random.PRNGKey(0)
@@ -239,7 +240,7 @@ def main(argv=None):
   refs = [reference(args.reference, args.reference_steps)] if args.reference else []
   rows = []
   for preset in args.presets.split(","):
-    batch = args.batch or config.preset(preset).batch_size
+    batch = args.batch or experiment.preset(preset).batch_size
     pair = {pol: bench_in_process(bench_one, preset, pol, batch, args.steps, infer_batches,
                                   args.infer_calls)
             for pol in args.policies.split(",")}

@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import jax.numpy as jnp
 
+from envs import batched, mujoco_batch
 from envs.batched import BatchedEnv
 from envs.env import BACKENDS, EnvConfig, TabletopEnv, resolve_backend
 from envs.mujoco_batch import MujocoBatchEnv
@@ -82,6 +83,11 @@ def taskset(name: str) -> tuple[str, ...]:
   raise ValueError(
       f"unknown taskset {name!r}; valid tasksets: {', '.join(TASKSETS)} "
       f"(or one task: {', '.join(TASKS)})")
+
+
+def renderer_of(backend: str) -> str:
+  """The renderer that draws a backend's camera images (they differ pixel by pixel)."""
+  return mujoco_batch.RENDERER if resolve_backend(backend) == "mujoco" else batched.RENDERER
 
 
 def make(name: str, num_envs: int = 1, render: bool = False, image_size=(64, 64),

@@ -14,8 +14,8 @@ from brax.envs.wrappers.training import EpisodeWrapper, VmapWrapper
 from mujoco import mjx
 
 from envs.env import TabletopEnv
+from envs.robot import CAMERAS
 
-CAMERAS = ("side", "wrist")
 RENDERER = "warp-raycast"  # what datasets and runs record (the C backend's is "mujoco-opengl")
 
 

@@ -38,8 +38,8 @@ from flax import struct
 from mujoco import batch as mj_batch
 
 from envs.env import SOLVER_LIMIT_BITS, TabletopEnv, clipped_ctrl
+from envs.robot import CAMERAS
 
-CAMERAS = ("side", "wrist")
 RENDERER = "mujoco-opengl"  # what datasets and runs record (MJX-Warp's is "warp-raycast")
 # The integration state saved before each step, restored where a step fails.
 SAVED_FIELDS = ("qpos", "qvel", "act", "ctrl", "qacc_warmstart", "time")

@@ -55,6 +55,9 @@ def _look_at(eye, target):
   return " ".join(f"{v:.4f}" for v in (*right, *up))
 
 
+# The cameras `arm_mjcf` defines (a side camera on the world, a wrist camera on the
+# gripper), in the order images are recorded, stacked and fed to policies.
+CAMERAS = ("side", "wrist")
 SIDE_CAMERA_EYE = (0.78, -0.42, 0.42)
 SIDE_CAMERA_TARGET = (0.30, 0.02, 0.03)
 

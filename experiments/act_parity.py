@@ -75,13 +75,14 @@ def run_dir(out: Path, taskset: str, variant: str, seed: int, policy: str = "act
 def job(out: Path, taskset: str, variant: str, seed: int, trials: int, policy: str = "act") -> dict:
   """Train one (variant, seed) if not done, evaluate it if not done; its per-task results."""
   from skillplug_jax.evaluate import protocol
+  from skillplug_jax.experiment import preset
   from skillplug_jax.train import config, loop
   envs.quiet_warp()
   run = run_dir(out, taskset, variant, seed, policy)
   result_file = run / f"eval_{trials}trials.json"
   if result_file.exists():
     return json.loads(result_file.read_text())
-  cfg = config.override(config.preset("quick", policy), VARIANTS[variant][0] + [
+  cfg = config.override(preset("quick", policy), VARIANTS[variant][0] + [
       f"taskset={taskset}", f"seed={seed}", f"data_dir={out / 'datasets'}", f"workdir={run}"])
   t0 = time.time()
   loop.train(cfg, progress=False)
@@ -180,9 +181,10 @@ def main(argv=None) -> int:
   seeds = [int(s) for s in args.seeds.split(",") if s]
   tasks = envs.taskset(args.taskset)
   out = Path(args.out)
+  from skillplug_jax.experiment import preset
   from skillplug_jax.train import config, loop
   # The dataset first, in this process, so that the workers only read it.
-  loop.load_data(config.override(config.preset("quick", "act"), [
+  loop.load_data(config.override(preset("quick", "act"), [
       f"taskset={args.taskset}", f"data_dir={out / 'datasets'}"]), progress=True)
   t0 = time.time()
   todo = [(v, s) for v in variants for s in seeds]

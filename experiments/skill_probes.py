@@ -33,18 +33,19 @@ import time
 from pathlib import Path
 
 import jax
-import jax.numpy as jnp
 import numpy as np
 
 import envs
-from experiments import configs, pipeline
+from experiments import pipeline
+from skillplug_jax import diagnostics, experiment
 from skillplug_jax.atomic_json import write_json_atomic, write_text_atomic
 from skillplug_jax.data import loader as data_loader
 from skillplug_jax.evaluate import protocol
 from skillplug_jax.evaluate.tables import mean_se
 from skillplug_jax.evaluate.policy_controller import load_controller
+from skillplug_jax.experiment import Experiment
 from skillplug_jax.model.policy import Policy
-from skillplug_jax.train import checkpoint, loop
+from skillplug_jax.train import loop, run_files
 
 
 def modes(k: int, pairs: bool = False, drops: bool = False) -> dict[str, tuple[float, ...] | None]:
@@ -71,7 +72,7 @@ def select(all_modes: dict, wanted: str) -> dict:
   return {m: w for m, w in all_modes.items() if m in names}
 
 
-def closed_loop(run: Path, exp: configs.Experiment, tasks, k: int, videos: int = 0,
+def closed_loop(run: Path, exp: Experiment, tasks, k: int, videos: int = 0,
                 video_dir: Path | None = None, chosen: dict | None = None) -> dict:
   """{mode: {task: success rate}} for every routing mode (cached per mode).
 
@@ -99,11 +100,10 @@ def closed_loop(run: Path, exp: configs.Experiment, tasks, k: int, videos: int =
 
 
 def _features(module: Policy, obs):
-  h, pos = module.encode(obs)
-  skills = module.skills()
-  u = module.interactor(h, jnp.broadcast_to(skills, (h.shape[0],) + skills.shape), True, pos)
-  r = module.router(h)
-  return h, u, r, module._fuse(r, u), skills
+  """The inference path's plug input (scene tokens, or decoder steps with plug_site='decoder'),
+  interactor outputs, routing, fused feature and skill embeddings."""
+  f = module.features(obs)
+  return f["plug_input"], f["skill_tokens"], f["routing"], f["fused"], module.skills()
 
 
 def _cos(a, b):
@@ -123,9 +123,9 @@ def linear_cka(x: np.ndarray, y: np.ndarray) -> float:
 
 def demo_states(run: Path, tasks, per_episode: int = 4) -> dict[str, dict]:
   """Observations of each task's demonstrations (`per_episode` evenly spaced timesteps of each)."""
-  cfg = checkpoint.read_config(run)
+  cfg = run_files.read_config(run)
   data = loop.load_data(cfg, generate=False, progress=False)
-  data = dataclasses.replace(data, stats=checkpoint.read_stats(run))
+  data = dataclasses.replace(data, stats=run_files.read_stats(run))
   ld = data_loader.ChunkLoader(data, 1, chunk=cfg.model.chunk, normalize_object_state=cfg.model.normalize_object_state)
   out = {}
   for i, task in enumerate(data.tasks):
@@ -166,7 +166,9 @@ def geometry(run: Path, act_run: Path | None, tasks) -> dict:
                fused_vs_encoder_cosine=float(_cos(fused.reshape(-1, fused.shape[-1]), h.reshape(-1, h.shape[-1])).mean()),
                fused_vs_mean_u_cosine=float(_cos(fused.reshape(-1, fused.shape[-1]),
                                                  u.mean(axis=1).reshape(-1, fused.shape[-1])).mean()),
-               router_mean=r.mean(0).tolist(), states=int(h.shape[0]))
+               router_mean=r.mean(0).tolist(), states=int(h.shape[0]),
+               diagnostics=diagnostics.as_json(dict(diagnostics.skill_geometry(u, h, r),
+                                                    routing=diagnostics.routing_stats(r))))
     if act is not None:
       ha = np.asarray(act[0](act[1], obs))
       row["cka_fused_vs_act"] = linear_cka(fused.reshape(fused.shape[0], -1), ha.reshape(ha.shape[0], -1))
@@ -251,7 +253,7 @@ def main(argv=None) -> int:
   args = p.parse_args(argv)
   envs.quiet_warp()
   try:
-    exp = configs.only(configs.get(args.config, args.set), args.variants, args.config)
+    exp = experiment.only(experiment.get(args.config, args.set), args.variants, args.config)
     out = Path(args.out or f"results/{args.config}")
     tasks = pipeline.tasks_of(exp.train.taskset)
     result = dict(config=args.config, trials=exp.trials, eval_seed=exp.eval_seed, tasks=list(tasks), seeds={},
@@ -264,7 +266,7 @@ def main(argv=None) -> int:
         if not (run / "config.json").exists():
           raise ValueError(f"{run} does not exist: run the pipeline first (python -m experiments.pipeline "
                            f"--config {args.config} --out {out})")
-        k = checkpoint.read_config(run).model.num_skills
+        k = run_files.read_config(run).model.num_skills
         key = f"{variant.name}/seed{seed}" if variant.name else str(seed)
         entry = dict(run=str(run), variant=variant.name, label=variant.label or variant.name)
         if not args.geometry_only:

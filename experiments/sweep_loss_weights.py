@@ -1,6 +1,6 @@
 """Short sweep of the SkillPlug loss weights (the paper gives no values).
 
-    python -m experiments.sweep_loss_weights --out docs/results/sweep_loss_weights_quick_cpu.json
+    python -m experiments.sweep_loss_weights --out docs/results/loss_weights/sweep_loss_weights_quick_cpu.json
 
 One weight at a time around the defaults (kl 1, bsa 0.1, sd 0.1), each run the
 `quick` preset (state only, discoverse7, 10 demos per task, 1500 steps).
@@ -25,6 +25,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from skillplug_jax import losses
+from skillplug_jax.experiment import preset
 from skillplug_jax.data import loader as data_loader
 from skillplug_jax.model.policy import Policy
 from skillplug_jax.train import config, loop
@@ -59,7 +60,7 @@ def main(argv=None):
   p.add_argument("--out", default="results/sweep_loss_weights.json")
   args = p.parse_args(argv)
 
-  base = config.preset("quick", "skillplug")
+  base = preset("quick", "skillplug")
   val_cfg = config.override(base, [f"demos={args.val_demos}", "data_seed=1"])
   val = loop.load_data(val_cfg)
   settings = [("default", [])] + [(f"{k}={v}", [f"loss.{k}={v}"]) for k, vals in GRID.items() for v in vals]

@@ -83,26 +83,25 @@ def cmd_demos(args) -> int:
 def cmd_pretrain(args) -> int:
   import jax
 
+  from skillplug_jax import experiment
   from skillplug_jax.train import config, loop
 
   if args.distributed:  # several hosts: coordinator and process ids come from the cluster's env
     jax.distributed.initialize()
-  from experiments import configs
-  cfg = configs.get(args.config).train_config(args.policy, seed=0)
-  cfg = config.override(cfg, [f"taskset={args.taskset}", f"seed={args.seed}", f"backend={args.backend}"]
+  exp = experiment.get(args.config)
+  cfg = config.override(exp.train_config(args.policy, seed=0),
+                        [f"taskset={args.taskset}", f"seed={args.seed}", f"backend={args.backend}"]
                         + list(args.set or []))
   if args.workdir:
     cfg = config.override(cfg, [f"workdir={args.workdir}"])
-  run = loop.train(cfg)
+  run = loop.train(cfg, record=experiment.record(exp, args.policy, experiment.directory(args.config)))
   print(f"checkpoint: {run / 'checkpoints'} (config and normalisation statistics beside it in {run})")
   return 0
 
 
 def cmd_eval(args) -> int:
-  from pathlib import Path
-
   import envs
-  from skillplug_jax.evaluate import protocol, tables
+  from skillplug_jax.evaluate import protocol, report
 
   runs = _expand_seeds([r for part in args.runs for r in part.split(",") if r], args.seeds)
   tasks = [n for part in args.taskset.split(",") for n in envs.taskset(part)]
@@ -110,12 +109,7 @@ def cmd_eval(args) -> int:
   out = protocol.evaluate_runs(runs, tasks, args.trials, seed=args.seed, batch=args.batch,
                                query_every=args.query_every, videos=args.videos, video_dir=video_dir,
                                backend=args.backend)
-  md = tables.report(out, f"{args.trials} paired trials per task (seed {args.seed})")
-  print("\n" + md + "\n")
-  print(rows_legend(out["rows"]))
-  print(protocol.solver_limit_summary(out["results"]))
-  if args.out:
-    _write_tables(Path(args.out), out, md)
+  print(report.write(out, f"{args.trials} paired trials per task (seed {args.seed})", args.out))
   if args.videos:
     print(f"videos of the first {args.videos} trials per task: {video_dir}/<run>/<task>_trialNN.gif")
   return 0
@@ -137,43 +131,15 @@ def _expand_seeds(runs: list[str], seeds: str) -> list[str]:
 
 
 def cmd_fewshot(args) -> int:
-  from pathlib import Path
-
   from skillplug_jax import fewshot
-  from skillplug_jax.evaluate import tables
+  from skillplug_jax.evaluate import report
 
   runs = [r for part in args.runs for r in part.split(",") if r]
   out = fewshot.adapt_and_evaluate(runs, args.taskset, args.demos, args.trials, args.seed, args.batch,
                                    steps=args.steps, backend=args.backend)
-  md = tables.report(out, f"few-shot, {args.demos} demos per task, {args.trials} paired trials per task")
-  print("\n" + md + "\n")
-  print(rows_legend(out["rows"]))
-  from skillplug_jax.evaluate import protocol
-  print(protocol.solver_limit_summary(out["results"]))
-  if args.out:
-    _write_tables(Path(args.out), out, md)
+  print(report.write(out, f"few-shot, {args.demos} demos per task, {args.trials} paired trials per task",
+                     args.out))
   return 0
-
-
-def rows_legend(rows: dict) -> str:
-  """One line per table row: its training seeds and the settings it overrides (the JSON has them all)."""
-  lines = []
-  for name, row in rows.items():
-    changed = ", ".join(f"{k}={v}" for k, v in row["overrides"].items()) or "none"
-    lines.append(f"{name}: {row['config']['preset']} preset, seeds {row['seeds']}; overridden: {changed}")
-  return "\n".join(lines)
-
-
-def _write_tables(base, out: dict, md: str) -> None:
-  """OUT.json (everything), OUT.md (the three tables), OUT.csv (success) and OUT.queries[_paired].csv."""
-  from skillplug_jax.atomic_json import write_json_atomic, write_text_atomic
-  from skillplug_jax.evaluate import tables
-  write_json_atomic(base.with_suffix(".json"), out)
-  write_text_atomic(base.with_suffix(".md"), md + "\n")
-  write_text_atomic(base.with_suffix(".csv"), tables.csv(out["table"]))
-  write_text_atomic(base.with_suffix(".queries.csv"), tables.csv(out["queries"]))
-  write_text_atomic(base.with_suffix(".queries_paired.csv"), tables.csv(out["queries_paired"]))
-  print(f"wrote {base.with_suffix('.json')}, .md, .csv, .queries.csv, .queries_paired.csv")
 
 
 def _dir_mb(path) -> float:
@@ -216,8 +182,9 @@ def build_parser() -> argparse.ArgumentParser:
   t.add_argument("--taskset", default="discoverse7")
   t.add_argument("--policy", default="skillplug", choices=("skillplug", "act"))
   t.add_argument("--config", "--preset", dest="config", default="quick", metavar="NAME",
-                 help="experiments/configs/NAME.py: quick (CPU minutes, state only), cpu (the CPU-scale "
-                      "preset), budget (~10 min of one GPU), paper (the paper's protocol), or another config")
+                 help="experiments/configs/NAME.py, or a path to a config file: quick (CPU minutes, state "
+                      "only), cpu (the CPU-scale preset), budget (~10 min of one GPU), paper (the paper's "
+                      "protocol), or another config; the run records it (its few-shot protocol and settings)")
   t.add_argument("--seed", type=int, default=0, help="training seed (initialisation, batches, dropout)")
   t.add_argument("--set", action="append", metavar="KEY=VALUE",
                  help="override a config field, e.g. --set lr=3e-4 --set model.hidden=128 --set loss.sd=0.5")
@@ -251,8 +218,8 @@ def build_parser() -> argparse.ArgumentParser:
   f.add_argument("--taskset", default="discoverse_fewshot4")
   f.add_argument("--demos", type=int, default=10, help="demonstrations per unseen task")
   f.add_argument("--steps", type=int, default=None,
-                 help="fine-tuning steps (default: the source run's config's fewshot.steps, e.g. quick 500; "
-                      "0 trains the source's epochs)")
+                 help="fine-tuning steps (default: the few-shot steps the source run recorded of its config, "
+                      "e.g. quick 500; 0 trains the source's epochs)")
   f.add_argument("--trials", type=int, default=50)
   f.add_argument("--seed", type=int, default=1000)
   f.add_argument("--batch", type=int, default=50)

@@ -12,7 +12,7 @@ from skillplug_jax import cli
 from skillplug_jax.data import loader, rlds
 from skillplug_jax.data.rlds import DatasetError
 from skillplug_jax.evaluate.policy_controller import load_controller
-from skillplug_jax.train import checkpoint, loop
+from skillplug_jax.train import checkpoint, loop, run_files
 from skillplug_jax.train.scalars import read_metrics
 from synthetic import synthetic_episode, write_synthetic, write_two_task_demos
 from test_train import TASKS, tiny
@@ -162,7 +162,7 @@ def test_evaluation_reads_the_parameters_without_an_optimizer(finished_run, monk
   """load_params gets exactly the parameters that restoring the whole training state gets,
   and builds no optimiser to do so."""
   run = finished_run[0]
-  cfg = checkpoint.read_config(run)
+  cfg = run_files.read_config(run)
   params = loop.init_params(cfg, jax.random.PRNGKey(0))
   whole = loop.TrainState(jax.numpy.zeros((), "int32"), params, loop.optimizer(cfg, params, cfg.max_steps).init(params))
   mngr = checkpoint.manager(run)

@@ -15,6 +15,7 @@ import envs
 from envs import rollout as env_rollout
 from envs.mujoco_batch import MujocoBatchEnv
 from envs.env import SUCCESS_HOLD_STEPS
+from skillplug_jax import experiment
 from skillplug_jax.evaluate import groups, protocol, tables
 from skillplug_jax.evaluate.policy_controller import policy_controller, temporal_ensemble
 from envs.rollout import EpisodeResults, expert_controller, run_episodes
@@ -130,7 +131,7 @@ def test_temporal_ensemble_matches_act_formula():
 
 
 def _tiny_policy(policy="skillplug"):
-  m = dataclasses.replace(train_config.preset("quick").model, policy=policy, hidden=32, heads=2, ff=64, enc_layers=1,
+  m = dataclasses.replace(experiment.preset("quick").model, policy=policy, hidden=32, heads=2, ff=64, enc_layers=1,
                           dec_layers=1, cvae_enc_layers=1, num_skills=3, skill_latent_dim=8,
                           alignment_dim=16, chunk=8)
   cfg = train_config.TrainConfig(preset="quick", model=m)
@@ -274,10 +275,11 @@ TASKS2 = ["jujube_pick", "drawer_open"]
 
 def _run_results(policy: str, seed: int, outcomes: dict, *settings) -> list[dict]:
   """One run's per-task results as `protocol.evaluate_runs` records them (no simulation)."""
-  cfg = train_config.override(train_config.preset("quick", policy),
+  cfg = train_config.override(experiment.preset("quick", policy),
                               ["taskset=quickstart3", f"seed={seed}", f"workdir=runs/{policy}{seed}", *settings])
-  return [dict(task=t, config=groups.training_key(cfg), train_seed=seed, policy=groups.policy_label(cfg),
-               run=str(cfg.run_dir), success_rate=float(np.mean(succ)), trial_success=[bool(x) for x in succ],
+  row = groups.row_fields(cfg, experiment.record(experiment.get("quick"), policy))
+  return [dict(task=t, **row, run=str(cfg.run_dir), success_rate=float(np.mean(succ)),
+               trial_success=[bool(x) for x in succ],
                trial_queries=list(q), trials=len(succ),
                solver_limit_episodes={"solver_iterations": 1, "linesearch_iterations": 0})
           for t, (succ, q) in outcomes.items()]
@@ -344,7 +346,7 @@ def test_queries_tables_per_seed_and_over_paired_trials():
 
 
 def test_eval_cli_and_pipeline_print_and_write_every_table(tmp_path, monkeypatch, capsys):
-  from experiments import configs, pipeline
+  from experiments import publish
   from skillplug_jax import cli
   results = _three_configurations()
   monkeypatch.setattr(protocol, "evaluate_runs", lambda runs, tasks, trials, **kw: dict(
@@ -368,10 +370,10 @@ def test_eval_cli_and_pipeline_print_and_write_every_table(tmp_path, monkeypatch
   act = [r for r in results if r["policy"] == "ACT"]
   sp = [r for r in results if r["train_seed"] == 0 and r["config"]["model.num_skills"] == 4 and r["policy"] != "ACT"]
   parts = [dict(pretrain=act, fewshot=act[:1]), dict(pretrain=sp, fewshot=sp[:1])]
-  exp = dataclasses.asdict(configs.get("quick"))
-  text = pipeline.report(dict(
-      config="quick", experiment=exp, pretrain=pipeline.merged_summary(parts, "pretrain", TASKS2),
-      fewshot=pipeline.merged_summary(parts, "fewshot", TASKS2[:1]),
+  exp = dataclasses.asdict(experiment.get("quick"))
+  text = publish.report(dict(
+      config="quick", experiment=exp, pretrain=publish.merged_summary(parts, "pretrain", TASKS2),
+      fewshot=publish.merged_summary(parts, "fewshot", TASKS2[:1]),
       stages_s={"pretrain": 1.0}, runs=["a", "b"], wall_s=60.0, device="cpu", backend="mujoco"))
   assert text.count("| ACT+SkillPlug | ") == 6 and text.count("| ACT | ") == 6  # 3 tables x 2 stages
   assert "Trials every run solved: J.P. 3/4, D.O. 1/4" in text
@@ -393,12 +395,12 @@ def test_eval_cli_expands_seed_templates_and_rejects_bad_ones(capsys):
 def test_an_image_policy_on_another_renderer_is_warned_about(capsys):
   """MJX-Warp's ray caster and MuJoCo's OpenGL draw different pixels: evaluating
   an image policy on the other backend says so; a state policy is not warned about."""
-  images = dataclasses.replace(train_config.preset("quick").model, use_images=True)
+  images = dataclasses.replace(experiment.preset("quick").model, use_images=True)
   cfg = train_config.TrainConfig(preset="quick", model=images, backend="mjx-warp")
   protocol.warn_if_other_renderer("runs/img", cfg, "mujoco")
   err = capsys.readouterr().err
   assert "WARNING: runs/img is an image policy trained on warp-raycast images" in err
   assert "evaluated on mujoco-opengl images (mujoco backend)" in err
   protocol.warn_if_other_renderer("runs/img", cfg, "mjx-warp")
-  protocol.warn_if_other_renderer("runs/state", dataclasses.replace(cfg, model=train_config.preset("quick").model), "mujoco")
+  protocol.warn_if_other_renderer("runs/state", dataclasses.replace(cfg, model=experiment.preset("quick").model), "mujoco")
   assert capsys.readouterr().err == ""

@@ -1,5 +1,6 @@
 """Experiment configs and the pipeline that runs them: loading, overrides, the few-shot
-protocol they carry, a whole (tiny) protocol end to end, resuming it, and its routing arrays."""
+protocol they carry, a whole (tiny) protocol end to end, resuming it, its routing arrays,
+and what its runs record of their config (so that editing it later renames nothing)."""
 
 import dataclasses
 import json
@@ -9,30 +10,33 @@ import numpy as np
 import optax
 import pytest
 
-from experiments import configs, pipeline
-from skillplug_jax import fewshot
-from skillplug_jax.evaluate import protocol
+from experiments import pipeline, publish
+from skillplug_jax import experiment, fewshot
+from skillplug_jax.evaluate import groups, protocol
 from skillplug_jax.train import config as train_config
-from skillplug_jax.train import loop
+from skillplug_jax.train import loop, run_files
 
 
 def test_every_config_loads_names_its_command_and_its_preset():
-  assert {"quick", "cpu", "budget", "paper"} <= set(configs.names())
-  for name in configs.names():
-    exp = configs.get(name)
+  assert {"quick", "cpu", "budget", "paper"} <= set(experiment.names())
+  for name in experiment.names():
+    exp = experiment.get(name)
     assert exp.command, name  # the docstring's first line: how to run it
-    assert exp.train.preset in configs.names(), name
+    assert exp.train.preset in experiment.names(), name
     # a preset's training settings are what `skillplug pretrain --config NAME` trains
-    base = configs.get(exp.train.preset)
-    assert train_config.preset(exp.train.preset, "act") == base.train_config("act", 0)
-  assert configs.get("paper").train.model.hidden == 512 and configs.get("paper").fewshot.steps == 0
-  assert configs.get("quick").fewshot.steps == 500 and configs.get("quick").trials == 10
-  cpu = configs.get("cpu")
+    base = experiment.get(exp.train.preset)
+    assert experiment.preset(exp.train.preset, "act") == base.train_config("act", 0)
+  assert experiment.get("paper").train.model.hidden == 512 and experiment.get("paper").fewshot.steps == 0
+  assert experiment.get("quick").fewshot.steps == 500 and experiment.get("quick").trials == 10
+  cpu = experiment.get("cpu")
   assert not cpu.train.model.use_images and cpu.seeds == (0, 1, 2) and cpu.trials == 50
+  # a config file named by its path: its train.preset is read beside it
+  path = experiment.configs_dir() / "k_sweep.py"
+  assert experiment.get(str(path)) == experiment.get("k_sweep") and experiment.directory(str(path)) == path.parent
 
 
 def test_overrides_reach_every_level_and_bad_ones_are_named():
-  exp = configs.get("cpu", ["seeds=0,1", "train.model.hidden=32", "train.lr=3e-4", "fewshot.steps=7",
+  exp = experiment.get("cpu", ["seeds=0,1", "train.model.hidden=32", "train.lr=3e-4", "fewshot.steps=7",
                             "fewshot.trainable_skillplug=router", "run_fewshot=false"])
   assert exp.seeds == (0, 1) and exp.train.model.hidden == 32 and exp.train.lr == 3e-4
   assert exp.fewshot.steps == 7 and exp.fewshot.trainable("skillplug") == ("router",)
@@ -40,42 +44,45 @@ def test_overrides_reach_every_level_and_bad_ones_are_named():
   cfg = exp.train_config("act", 2)
   assert (cfg.model.policy, cfg.seed, cfg.model.hidden) == ("act", 2, 32)
   with pytest.raises(ValueError, match="unknown config 'cpuu'.*quick"):
-    configs.get("cpuu")
+    experiment.get("cpuu")
   with pytest.raises(ValueError, match="unknown setting 'train.model.hiden'"):
-    configs.get("cpu", ["train.model.hiden=3"])
+    experiment.get("cpu", ["train.model.hiden=3"])
   with pytest.raises(ValueError, match="unknown config 'huge'"):
-    train_config.preset("huge")
+    experiment.preset("huge")
   with pytest.raises(ValueError, match="lr_schedule must be one of"):
     dataclasses.replace(exp.train, lr_schedule="linear")
 
 
 def test_a_variant_may_set_its_own_seeds():
-  arms = {v.name: e for v, e in configs.expand(configs.get("routing_remedies"))}
+  arms = {v.name: e for v, e in experiment.expand(experiment.get("routing_remedies"))}
   assert arms["film"].seeds == (0, 1, 2) and arms["film"].train.model.interactor == "film"
   assert arms["temp0.1"].seeds == (0,) and arms["sd0.01"].train.loss.sd == 0.01
   # a command-line seeds override reaches the other arms; the variant's own setting wins
-  arms = {v.name: e for v, e in configs.expand(configs.get("routing_remedies", ["seeds=1"]))}
+  arms = {v.name: e for v, e in experiment.expand(experiment.get("routing_remedies", ["seeds=1"]))}
   assert arms["film"].seeds == (0, 1, 2) and arms["sd0.01"].seeds == (1,)
 
 
-def test_fewshot_protocol_comes_from_the_source_runs_config(tmp_path):
-  quick = train_config.preset("quick", "skillplug")
-  few = fewshot.fewshot_config(quick, tmp_path / "src", "block_place", "discoverse_fewshot4", 10)
-  assert (few.max_steps, few.trainable) == (500, ("action_head", "router"))
-  act = fewshot.fewshot_config(train_config.preset("quick", "act"), tmp_path / "src", "block_place",
-                               "discoverse_fewshot4", 10)
+def test_fewshot_protocol_comes_from_the_source_runs_record(tmp_path):
+  quick = experiment.preset("quick", "skillplug")
+  plan = experiment.record(experiment.get("quick"), "skillplug").fewshot
+  few = fewshot.fewshot_config(quick, tmp_path / "src", "block_place", plan)
+  assert (few.max_steps, few.trainable, few.demos) == (500, ("action_head", "router"), 10)
+  assert few.data_taskset == "discoverse_fewshot4" and few.taskset == "block_place"
+  act = fewshot.fewshot_config(experiment.preset("quick", "act"), tmp_path / "src", "block_place", plan)
   assert act.trainable == ("action_head",) and act.init_from == str(tmp_path / "src")
-  gone = dataclasses.replace(quick, preset="removed_config")
+  # a run without a record, of a config that is gone: its protocol is unknown
+  gone = dataclasses.replace(quick, preset="removed_config", workdir=str(tmp_path / "old"))
+  run_files.write_run_files(gone.run_dir, gone, {})
   with pytest.raises(ValueError, match="'removed_config' is not in experiments/configs"):
-    fewshot.fewshot_config(gone, tmp_path / "src", "block_place", "discoverse_fewshot4", 10)
-  # explicit settings need no config
-  mine = fewshot.fewshot_config(gone, tmp_path / "src", "block_place", "discoverse_fewshot4", 10, steps=3,
-                                trainable=("router",))
+    run_files.read_record(gone.run_dir)
+  # a protocol chosen by the caller needs no config
+  mine = fewshot.fewshot_config(gone, tmp_path / "src", "block_place",
+                                experiment.FewShot(steps=3, trainable_skillplug=("router",)))
   assert (mine.max_steps, mine.trainable) == (3, ("router",))
 
 
 def test_cosine_schedule_warms_up_then_decays_to_zero():
-  cfg = train_config.override(train_config.preset("quick"), ["lr=1e-3", "warmup_steps=10", "lr_schedule=cosine"])
+  cfg = train_config.override(experiment.preset("quick"), ["lr=1e-3", "warmup_steps=10", "lr_schedule=cosine"])
   lr = loop.learning_rate(cfg, 110)
   assert float(lr(0)) == 0.0 and float(lr(10)) == pytest.approx(1e-3)
   assert float(lr(60)) == pytest.approx(5e-4, rel=1e-3) and float(lr(110)) == pytest.approx(0.0, abs=1e-9)
@@ -96,9 +103,9 @@ TINY = ["train.taskset=jujube_pick,drawer_open", "train.demos=2", "train.max_ste
 def tiny_run(tmp_path_factory):
   """The quick config at a smoke size through the whole pipeline, published for the notebooks."""
   out = tmp_path_factory.mktemp("pipeline")
-  exp = configs.get("quick", TINY)
+  exp = experiment.get("quick", TINY)
   summary = pipeline.run(exp, out)
-  pipeline.publish(summary, pipeline.report(summary), out / "published")
+  publish.publish(summary, publish.report(summary), out / "published")
   return exp, out, summary
 
 
@@ -121,7 +128,7 @@ def test_pipeline_runs_the_protocol_and_writes_routing_arrays(tiny_run):
   few_sp = next(r for r in few["results"] if r["policy"] == "ACT+SkillPlug")
   assert few_sp["trainable"] == ["action_head", "router"] and few_sp["steps"] == 2
   assert few_sp["source"].endswith("jujube_pick,drawer_open_skillplug_quick_seed0")
-  text = pipeline.report(summary)
+  text = publish.report(summary)
   assert text.count("| ACT+SkillPlug |") == 6 and "Wall time:" in text
   assert "ACT+SkillPlug minus ACT, success points, multi-task: J.P. " in text
   assert "2 demos, 2 fine-tuning steps, 3 paired trials" in text
@@ -142,6 +149,102 @@ def test_pipeline_resumes_without_training_or_evaluating_again(tiny_run, monkeyp
   assert again["pretrain"]["table"] == summary["pretrain"]["table"]
   assert again["fewshot"]["table"] == summary["fewshot"]["table"]
   assert all(loop.load_params(r["run"])[2] == 4 for r in summary["pretrain"]["results"])
+
+
+def _skillplug_run(summary: dict) -> Path:
+  return Path(next(r["run"] for r in summary["pretrain"]["results"] if r["policy"] == "ACT+SkillPlug"))
+
+
+def _edited_configs(dest: Path) -> Path:
+  """The configs with quick.py edited as a later commit might: the model the tiny runs override
+  (hidden 32, 3 skills) becomes its default, and its few-shot protocol trains 7 steps."""
+  dest.mkdir()
+  text = (experiment.configs_dir() / "quick.py").read_text()
+  for old, new in (("hidden=64", "hidden=32"), ("num_skills=4", "num_skills=3"),
+                   ("FewShot(steps=500)", "FewShot(steps=7)")):
+    assert old in text
+    text = text.replace(old, new)
+  (dest / "quick.py").write_text(text)
+  return dest
+
+
+def _rows_of(run: Path) -> dict:
+  """The run's row beside a K=2 run of the same record, named as evaluation names them."""
+  cfg, record = run_files.read_config(run), run_files.read_record(run)
+  other = train_config.override(cfg, ["model.num_skills=2"])
+  return groups.group_rows([groups.row_fields(c, record) for c in (cfg, other)])
+
+
+def test_a_run_records_its_fewshot_protocol_and_overrides(tiny_run):
+  _, _, summary = tiny_run
+  run = _skillplug_run(summary)
+  saved = json.loads((run / "config.json").read_text())
+  record = saved["experiment"]
+  assert record["config"] == "quick" and record["fewshot"]["steps"] == 2  # the experiment's, overrides included
+  assert record["fewshot"]["trainable_skillplug"] == ["action_head", "router"]
+  assert record["defaults"]["model"]["hidden"] == 64 and record["defaults"]["model"]["policy"] == "skillplug"
+  # the TrainConfig's fields are as they always were, the record beside them
+  cfg = run_files.read_config(run)
+  assert cfg == train_config.from_dict({k: v for k, v in saved.items() if k != "experiment"})
+  overrides = groups.row_fields(cfg, run_files.read_record(run))["overrides"]
+  assert overrides["model.hidden"] == 32 and overrides["model.num_skills"] == 3 and "lr" not in overrides
+  # every result carries them, and a few-shot run keeps its source's record
+  assert all(r["overrides"] == overrides for r in summary["pretrain"]["results"] + summary["fewshot"]["results"]
+             if r["policy"] == "ACT+SkillPlug")
+  few_run = next(Path(r["run"]) for r in summary["fewshot"]["results"] if r["policy"] == "ACT+SkillPlug")
+  assert run_files.stored_record(few_run) == run_files.stored_record(run)
+
+
+def test_editing_the_config_afterwards_changes_neither_row_nor_fewshot(tiny_run, tmp_path, monkeypatch):
+  run = _skillplug_run(tiny_run[2])
+  before = _rows_of(run)
+  assert list(before) == ["ACT+SkillPlug (num_skills=3)", "ACT+SkillPlug (num_skills=2)"]
+  edited = _edited_configs(tmp_path / "configs")
+  monkeypatch.setattr(experiment, "configs_dir", lambda: edited)  # today's file is the edited one
+  key = groups.training_key(run_files.read_config(run))
+  assert "model.hidden" not in groups.todays_overrides(key)  # what reading today's file would say
+  assert _rows_of(run) == before  # names and overrides as recorded
+  source, plan = run_files.read_config(run), run_files.read_record(run).fewshot
+  few = fewshot.fewshot_config(source, run, "mouse_push", plan)
+  assert (few.max_steps, few.trainable) == (2, ("action_head", "router"))
+  # a resumed run keeps the record it started with
+  loop.train(source, progress=False, record=experiment.record(experiment.get("quick"), "skillplug"))
+  assert run_files.read_record(run).fewshot == plan
+  # and with no config file to read at all, the run is still named and adapted
+  monkeypatch.setattr(experiment, "get", lambda *a, **k: pytest.fail("read a config file"))
+  assert _rows_of(run) == before and run_files.read_record(run).fewshot == plan
+
+
+def test_a_run_or_result_without_a_record_falls_back_to_todays_config(tiny_run, tmp_path, monkeypatch, capsys):
+  run = _skillplug_run(tiny_run[2])
+  saved = json.loads((run / "config.json").read_text())
+  del saved["experiment"]  # config.json as runs wrote it before the record
+  old = tmp_path / "old_run"
+  old.mkdir()
+  (old / "config.json").write_text(json.dumps(saved))
+  assert run_files.read_config(old) == run_files.read_config(run) and run_files.stored_record(old) is None
+  edited = _edited_configs(tmp_path / "configs")
+  monkeypatch.setattr(experiment, "configs_dir", lambda: edited)
+  capsys.readouterr()
+  assert run_files.read_record(old).fewshot.steps == 7  # today's file
+  assert "records no experiment config" in capsys.readouterr().err
+  # a result without overrides (an older evaluation or summary): named against today's file, with a warning
+  key = groups.training_key(run_files.read_config(old))
+  (row,) = groups.group_rows([dict(config=key, train_seed=0)]).values()
+  assert row["overrides"] == groups.todays_overrides(key) and "model.hidden" not in row["overrides"]
+  assert "record no overrides" in capsys.readouterr().err
+
+
+def test_published_summaries_from_before_the_record_still_tabulate(capsys):
+  """A committed summary's results carry no overrides: as a reference they take their published rows'."""
+  path = experiment.get("k_sweep").reference
+  published = json.loads(Path(path).read_text())["pretrain"]
+  ref = publish.reference_results(path, "pretrain")
+  assert ref and all("overrides" in r and r["reference"] == path for r in ref)
+  merged = publish.merged_summary([], "pretrain", published["table"]["tasks"], ref)
+  assert list(merged["rows"]) == list(published["rows"])
+  assert json.loads(json.dumps(merged["table"])) == published["table"]
+  assert "record no overrides" not in capsys.readouterr().err
 
 
 @pytest.mark.parametrize("name", ["success_tables.ipynb", "routing.ipynb", "skill_similarity.ipynb",
@@ -174,9 +277,9 @@ def test_variants_run_in_their_own_folders_and_join_the_reference_rows(tiny_run)
   named by what it changed, read beside the rows of a published reference summary."""
   _, ref_out, ref = tiny_run
   exp = dataclasses.replace(
-      configs.get("quick", TINY), policies=("skillplug",), reference=str(ref_out / "published" / "summary.json"),
-      variants=(configs.Variant("nosd", ("train.loss.sd=0",), "-SD"),
-                configs.Variant("k2", ("train.model.num_skills=2", "run_fewshot=false"), "K=2")))
+      experiment.get("quick", TINY), policies=("skillplug",), reference=str(ref_out / "published" / "summary.json"),
+      variants=(experiment.Variant("nosd", ("train.loss.sd=0",), "-SD"),
+                experiment.Variant("k2", ("train.model.num_skills=2", "run_fewshot=false"), "K=2")))
   out = ref_out / "variants"
   summary = pipeline.run(exp, out)
   assert sorted(p.name for p in out.iterdir()) == ["datasets", "k2", "nosd"]
@@ -195,17 +298,17 @@ def test_variants_run_in_their_own_folders_and_join_the_reference_rows(tiny_run)
   assert "ACT (reference)" in labels and len(summary["variants"]) == 4
   few_rows = {v["label"]: v["rows"]["fewshot"] for v in summary["variants"]}
   assert few_rows["-SD"] == "ACT+SkillPlug (loss.sd=0.0)" and few_rows["K=2"] is None  # named beside the few-shot rows
-  text = pipeline.report(summary)
+  text = publish.report(summary)
   assert "| -SD | ACT+SkillPlug (loss.sd=0.0, num_skills=3) | 0 |" in text
   ent = {v["label"]: v["routing_entropy_frac"] for v in summary["variants"]}
   assert ent["ACT (reference)"] is None and 0.0 < ent["-SD"] <= 1.0 + 1e-6
   assert 0.0 < ent["ACT+SkillPlug (loss.sd=0.1, num_skills=3) (reference)"] <= 1.0 + 1e-6  # from its published arrays
-  pipeline.publish(summary, text, out / "published")
+  publish.publish(summary, text, out / "published")
   index = json.loads((out / "published" / "routing" / "index.json").read_text())
   assert sorted(e["file"] for e in index if e["stage"] == "fewshot") == ["nosd_skillplug_seed0_fewshot_mouse_push.npz"]
   assert {e["variant"] for e in index} == {"nosd", "k2"}  # the reference's arrays stay where it published them
   with pytest.raises(ValueError, match="distinct folder names"):
-    configs.expand(dataclasses.replace(exp, variants=(configs.Variant("a"), configs.Variant("a"))))
+    experiment.expand(dataclasses.replace(exp, variants=(experiment.Variant("a"), experiment.Variant("a"))))
   assert pipeline.main(["--config", "loss_ablation", "--variants", "rec,nope", "--out", str(out)]) == 2
 
 
@@ -263,7 +366,7 @@ def test_skill_probes_replace_the_routing_and_measure_the_skills(tiny_run, capsy
   for r in sp:
     assert probe["closed_loop"]["router"][r["task"]]["trial_success"] == r["trial_success"]
   run = Path(sp[0]["run"])
-  exp = configs.get("quick", TINY)
+  exp = experiment.get("quick", TINY)
   own = run / "eval" / f"{exp.train.taskset}_trials{exp.trials}_seed{exp.eval_seed}.json"
   own.rename(own.with_suffix(".aside"))
   try:
@@ -293,7 +396,14 @@ def test_comparison_gives_the_difference_and_its_standard_error():
   table = {"tasks": ["jujube_pick"], "abbr": ["J.P."], "rows": {
       "ACT": {"cells": {"jujube_pick": (50.0, 3.0), "Avg.": (50.0, 3.0)}},
       "ACT+SkillPlug": {"cells": {"jujube_pick": (58.0, 4.0), "Avg.": (58.0, None)}}}}
-  line = pipeline.comparison(table, "multi-task")
+  line = publish.comparison(table, "multi-task")
   assert line == "ACT+SkillPlug minus ACT, multi-task: J.P. +8.0 ± 5.0 (+1.6 SE), Avg. +8.0"
+  for row in table["rows"].values():
+    row["seeds"] = 1
+  one_seed = publish.comparison(table, "multi-task")
+  assert one_seed.startswith(line) and "cannot separate the methods" in one_seed and "3-seed" in one_seed
+  for row in table["rows"].values():
+    row["seeds"] = 3
+  assert publish.comparison(table, "multi-task") == line  # 3 seeds: the difference and its SE stand alone
   del table["rows"]["ACT"]
-  assert pipeline.comparison(table, "multi-task") == ""
+  assert publish.comparison(table, "multi-task") == ""

@@ -7,10 +7,10 @@ import jax
 import numpy as np
 import pytest
 
-from skillplug_jax import fewshot, losses
+from skillplug_jax import experiment, fewshot, losses
 from skillplug_jax.data import loader as data_loader
 from skillplug_jax.data import normalization, rlds
-from skillplug_jax.train import checkpoint, config, loop
+from skillplug_jax.train import checkpoint, config, loop, run_files
 from skillplug_jax.train.scalars import read_metrics
 from host_devices import run_on_host_devices
 from synthetic import state_dataset_name, synthetic_episode, write_synthetic, write_two_task_demos
@@ -36,7 +36,7 @@ def data_dir(tmp_path_factory):
 
 
 def tiny(data_dir, workdir, policy="skillplug", *extra):
-  cfg = config.preset("quick", policy)
+  cfg = experiment.preset("quick", policy)
   return config.override(cfg, [
       "taskset=jujube_pick,kiwi_place", "demos=3", f"data_dir={data_dir}", f"workdir={workdir}",
       "model.hidden=32", "model.heads=2", "model.ff=64", "model.enc_layers=1", "model.dec_layers=2",
@@ -64,6 +64,8 @@ def test_resume_equals_straight_run(data_dir, tmp_path):
   rows = read_metrics(cfg.run_dir)
   assert [r["step"] for r in rows] == [2, 3, 4, 6]
   assert {"loss/rec", "loss/kl", "loss/bsa", "loss/sd", "loss/cvae_kl", "loss/loss"} <= set(rows[0])
+  assert {"diag/usage_entropy", "diag/query_entropy", "diag/effective_skills", "diag/task_skill_mi"} <= set(rows[0])
+  assert not any(k.startswith("loss/diag") for k in rows[0])  # diagnostics are not loss terms
   assert any(name.startswith("events.out.tfevents") for name in os.listdir(cfg.run_dir / "tensorboard"))
 
 
@@ -107,20 +109,20 @@ def test_skillplug_fewshot_trains_router_and_head_on_source_statistics(data_dir,
   the source run's statistics (those its frozen encoder learned on), not the target's."""
   src_cfg = tiny(data_dir, tmp_path / "src", "skillplug", "max_steps=3")
   source = loop.train(src_cfg, progress=False)
-  few = fewshot.fewshot_config(src_cfg, source, TARGET, TARGET, 3, steps=3)
+  few = fewshot.fewshot_config(src_cfg, source, TARGET, experiment.FewShot(taskset=TARGET, demos=3, steps=3))
   normalised_with = []
   real = data_loader.ChunkLoader
   monkeypatch.setattr(data_loader, "ChunkLoader",
                       lambda data, *a, **kw: (normalised_with.append(data.stats), real(data, *a, **kw))[1])
   loop.train(few, progress=False)
   assert _changed_groups(source, few.run_dir) == {"router", "action_head"}
-  source_stats = checkpoint.read_stats(source)
+  source_stats = run_files.read_stats(source)
   assert set(source_stats) >= {"action", "joint_pos", "object_state"}  # object state normalised too
   target_stats = normalization.read_stats(data_dir / state_dataset_name(TARGET))
   assert not np.allclose(target_stats["action"]["mean"], source_stats["action"]["mean"], atol=0.5)
   assert not np.allclose(target_stats["joint_pos"]["std"], source_stats["joint_pos"]["std"], atol=0.5)
   assert normalised_with == [source_stats]
-  assert checkpoint.read_stats(few.run_dir) == source_stats  # the controller un-normalises with them too
+  assert run_files.read_stats(few.run_dir) == source_stats  # the controller un-normalises with them too
 
 
 def test_act_fewshot_end_to_end(data_dir, tmp_path):
@@ -132,7 +134,7 @@ def test_act_fewshot_end_to_end(data_dir, tmp_path):
   assert (r["task"], r["trainable"], r["steps"]) == (TARGET, ["action_head"], 3)
   assert loop.load_params(r["run"])[2] == 3
   assert _changed_groups(source, r["run"]) == {"action_head"}  # encoder and CVAE bit-identical
-  assert checkpoint.read_stats(r["run"]) == checkpoint.read_stats(source)
+  assert run_files.read_stats(r["run"]) == run_files.read_stats(source)
   assert len(r["trial_success"]) == len(r["trial_queries"]) == 2
   assert list(out["rows"]) == ["ACT"] and out["rows"]["ACT"]["seeds"] == [0]
   assert out["table"]["rows"]["ACT"]["cells"][TARGET][0] == 100 * r["success_rate"]
@@ -165,5 +167,5 @@ def test_incompatible_checkpoint_and_bad_overrides(data_dir, tmp_path):
   with pytest.raises(ValueError, match="lr='fast'"):
     config.override(cfg, ["lr=fast"])
   with pytest.raises(ValueError, match="unknown config 'huge'"):
-    config.preset("huge")
+    experiment.preset("huge")
   assert config.override(cfg, ["loss.sd=0.5", "model.use_images=false"]).loss.sd == 0.5

@@ -43,6 +43,7 @@ from skillplug_jax.atomic_json import write_json_atomic, write_text_atomic
 from skillplug_jax.data import loader as data_loader
 from skillplug_jax.evaluate import protocol
 from skillplug_jax.evaluate.policy_controller import temporal_ensemble
+from skillplug_jax.experiment import preset
 from skillplug_jax.train import config, loop
 
 SHARED_TOOLS = Path(__file__).resolve().parents[2] / "shared" / "tools"
@@ -148,7 +149,7 @@ def main(argv=None) -> int:
     if path.exists():
       per_seed.append(json.loads(path.read_text()))
       continue
-    cfg = config.override(config.preset("quick", "act"), args.set + [
+    cfg = config.override(preset("quick", "act"), args.set + [
         f"taskset={args.taskset}", f"seed={seed}", f"data_dir={args.data_dir}"])
     data = loop.load_data(cfg)
     t0 = time.time()

@@ -15,7 +15,8 @@ import jax
 import jax.numpy as jnp
 
 from envs import expert, scene
-from envs.env import TabletopEnv, rests_on, upright
+from envs.env import TabletopEnv
+from envs.geometry import rests_on, upright
 
 PIECE = (0.01, 0.03, 0.015)  # half sizes: 2 cm wide (x), 6 cm long (y), 3 cm tall
 BLOCK = (0.025, 0.01, 0.01)  # 5 cm long (x), lying flat

@@ -10,7 +10,8 @@ import jax
 import jax.numpy as jnp
 
 from envs import expert, scene
-from envs.env import TabletopEnv, rests_on, upright, uniform_offset, xy_dist
+from envs.env import TabletopEnv
+from envs.geometry import rests_on, uniform_offset, upright, xy_dist
 
 H = scene.BLOCK_HALF
 

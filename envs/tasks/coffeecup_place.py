@@ -12,7 +12,8 @@ import jax
 import jax.numpy as jnp
 
 from envs import expert, scene
-from envs.env import TabletopEnv, rests_on, upright, uniform_offset, xy_dist
+from envs.env import TabletopEnv
+from envs.geometry import rests_on, uniform_offset, upright, xy_dist
 
 CUP_GRASP = scene.CUP_HEIGHT - 0.02  # grasp height on the cup's wall
 

@@ -13,7 +13,8 @@ import jax
 import jax.numpy as jnp
 
 from envs import expert, scene
-from envs.env import TabletopEnv, rests_on, uniform_offset, xy_dist
+from envs.env import TabletopEnv
+from envs.geometry import rests_on, uniform_offset, xy_dist
 from envs.tasks.coffeecup_place import CUP_GRASP, cup_on_plate
 
 LID_HALF, LID_THICK = 0.036, 0.006

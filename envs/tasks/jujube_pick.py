@@ -9,7 +9,8 @@ also asks for the lift: the jujube at least 3 cm above its resting height.
 import jax.numpy as jnp
 
 from envs import expert, scene
-from envs.env import TabletopEnv, uniform_offset
+from envs.env import TabletopEnv
+from envs.geometry import uniform_offset
 
 RADIUS = 0.013
 REST_Z = RADIUS - 0.001  # centre height of a jujube lying on the table

@@ -15,7 +15,8 @@ import jax
 import jax.numpy as jnp
 
 from envs import expert, robot, scene
-from envs.env import Phase, TabletopEnv, uniform_offset
+from envs.env import Phase, TabletopEnv
+from envs.geometry import uniform_offset
 
 BASE = (0.07, 0.09, 0.008)  # half sizes; the hinge runs along y at the far edge
 LID = (0.065, 0.085, 0.003)

@@ -9,7 +9,8 @@ import jax
 import jax.numpy as jnp
 
 from envs import expert, robot, scene
-from envs.env import Phase, TabletopEnv, uniform_offset, xy_dist
+from envs.env import Phase, TabletopEnv
+from envs.geometry import uniform_offset, xy_dist
 
 MOUSE = (0.03, 0.02, 0.014)
 PAD = (0.06, 0.05, 0.001)

@@ -9,7 +9,7 @@ are still deeper than what ACT was tuned with. The CVAE only summarises ~27
 tokens into a latent held near the prior: 2 layers.
 """
 
-from experiments.configs import Experiment, FewShot
+from skillplug_jax.experiment import Experiment, FewShot
 from skillplug_jax.model.config import ModelConfig
 from skillplug_jax.train.config import TrainConfig
 

@@ -17,7 +17,7 @@ for the paper's 6000 ACT epochs (fewshot.steps=0: 1,875 steps of batch 32
 over 10 demonstrations).
 """
 
-from experiments.configs import Experiment, FewShot
+from skillplug_jax.experiment import Experiment, FewShot
 from skillplug_jax.model.config import ModelConfig
 from skillplug_jax.train.config import TrainConfig
 

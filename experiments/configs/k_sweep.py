@@ -9,12 +9,13 @@ comes from `python -m experiments.skill_probes --config k_sweep --geometry-only`
 """
 
 import dataclasses
+from pathlib import Path
 
-from experiments.configs import Experiment, Variant, cpu
+from skillplug_jax.experiment import Experiment, Variant, load
 
 
 def get_config() -> Experiment:
   return dataclasses.replace(
-      cpu.get_config(), policies=("skillplug",), seeds=(0,), run_fewshot=False,
+      load("cpu", Path(__file__).parent), policies=("skillplug",), seeds=(0,), run_fewshot=False,
       reference="docs/results/paper_cpu/summary.json",
       variants=tuple(Variant(f"k{k}", (f"train.model.num_skills={k}",), f"K={k}") for k in (2, 6, 8)))

@@ -12,13 +12,15 @@ here, pretraining, evaluation and few-shot, beside other work).
 """
 
 import dataclasses
+from pathlib import Path
 
-from experiments.configs import Experiment, Variant, cpu
+from skillplug_jax.experiment import Experiment, Variant, load
 
 
 def get_config() -> Experiment:
   return dataclasses.replace(
-      cpu.get_config(), policies=("skillplug",), seeds=(0,), reference="docs/results/paper_cpu/summary.json",
+      load("cpu", Path(__file__).parent), policies=("skillplug",), seeds=(0,),
+      reference="docs/results/paper_cpu/summary.json",
       variants=(Variant("rec", ("train.loss.kl=0", "train.loss.sd=0", "train.loss.bsa=0"), "Rec"),
                 Variant("kl", ("train.loss.sd=0", "train.loss.bsa=0"), "+KL"),
                 Variant("sd", ("train.loss.bsa=0",), "+SD")))

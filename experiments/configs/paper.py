@@ -7,7 +7,7 @@ The paper's protocol (DISCOVERSE part): ACT at its published sizes (hidden
 few-shot from 10 demonstrations for the same 6000 epochs.
 """
 
-from experiments.configs import Experiment, FewShot
+from skillplug_jax.experiment import Experiment, FewShot
 from skillplug_jax.model.config import ModelConfig
 from skillplug_jax.train.config import TrainConfig
 

@@ -5,7 +5,7 @@ demonstrations per task, 1,500 steps of batch 32 at lr 1e-3; one seed, 10
 paired trials per task; few-shot 500 steps from 10 demonstrations.
 """
 
-from experiments.configs import Experiment, FewShot
+from skillplug_jax.experiment import Experiment, FewShot
 from skillplug_jax.model.config import ModelConfig
 from skillplug_jax.train.config import TrainConfig
 

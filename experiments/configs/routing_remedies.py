@@ -26,13 +26,14 @@ film trades skills that cancel for one skill that does everything.
 """
 
 import dataclasses
+from pathlib import Path
 
-from experiments.configs import Experiment, Variant, cpu
+from skillplug_jax.experiment import Experiment, Variant, load
 
 
 def get_config() -> Experiment:
   return dataclasses.replace(
-      cpu.get_config(), policies=("skillplug",), seeds=(0,), run_fewshot=False,
+      load("cpu", Path(__file__).parent), policies=("skillplug",), seeds=(0,), run_fewshot=False,
       reference="docs/results/paper_cpu/summary.json",
       variants=(Variant("temp0.1", ("train.model.router_temperature=0.1",), "router T=0.1"),
                 Variant("film", ("train.model.interactor=film", "seeds=0,1,2"), "FiLM interactor"),

@@ -98,7 +98,7 @@ def make_demos(cfg: DemoConfig, out: str | os.PathLike = "results/datasets", pro
   shutil.rmtree(building, ignore_errors=True)
   metadata = dict(generator="skillplug_jax.data.demos", config=_config_dict(cfg),
                   device=str(jax.devices()[0]), backend=envs.resolve_backend(cfg.backend),
-                  renderer=renderer_of(cfg.backend) if cfg.images else None,
+                  renderer=envs.renderer_of(cfg.backend) if cfg.images else None,
                   per_task={t: {k: v for k, v in s.items() if k != "reset_index"} for t, s in stats.items()})
   version_dir = rlds.write_dataset(building, cfg.spec, records, metadata)
   actions, joints, objects = [], [], []
@@ -113,12 +113,6 @@ def make_demos(cfg: DemoConfig, out: str | os.PathLike = "results/datasets", pro
   shutil.rmtree(building, ignore_errors=True)
   shutil.rmtree(staging, ignore_errors=True)
   return final
-
-
-def renderer_of(backend: str) -> str:
-  """The renderer that draws a backend's camera images (they differ pixel by pixel)."""
-  from envs import batched, mujoco_batch
-  return mujoco_batch.RENDERER if envs.resolve_backend(backend) == "mujoco" else batched.RENDERER
 
 
 def _config_dict(cfg: DemoConfig) -> dict:

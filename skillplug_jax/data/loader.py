@@ -31,7 +31,7 @@ import jax
 import numpy as np
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
-from envs.batched import CAMERAS
+from envs.robot import CAMERAS
 from skillplug_jax.data import normalization, rlds
 from skillplug_jax.data.rlds import DatasetError
 

@@ -24,7 +24,7 @@ import PIL.Image
 import tensorflow_datasets as tfds
 
 import envs
-from envs.batched import CAMERAS
+from envs.robot import CAMERAS
 from skillplug_jax.data.recording import Episode
 
 ACTION_DIM = envs.robot.ACTION_DIM

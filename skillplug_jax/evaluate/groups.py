@@ -12,14 +12,21 @@ rows: the preset when presets differ, and each setting overridden (against
 its preset) in some row whose value is not the same in every row, e.g.
 `ACT+SkillPlug (num_skills=2)`. Settings ACT does not read (skills, the
 SkillPlug loss terms) are left out of ACT rows' names.
+
+A result carries its run's overrides (`row_fields`), read against the preset's
+settings as the run recorded them when it was trained (`experiment.RunRecord`),
+so editing a config file later does not rename old rows. Results from before
+carry none: theirs are read against today's config file, with a warning.
 """
 
 from __future__ import annotations
 
 import dataclasses
 import json
+import sys
 from typing import Any, Mapping, Sequence
 
+from skillplug_jax import experiment
 from skillplug_jax.train import config as train_config
 
 # Where and how often, not what: two runs differing only in these trained the same thing.
@@ -28,7 +35,7 @@ NOT_TRAINING = frozenset({"seed", "workdir", "data_dir", "init_from", "log_every
 # Settings only ACT+SkillPlug reads: an ACT row's name never mentions them.
 SKILLPLUG_ONLY = frozenset({"model.num_skills", "model.skill_latent_dim", "model.alignment_dim",
                             "model.interactor", "model.router_temperature", "loss.kl", "loss.bsa",
-                            "loss.sd"})
+                            "loss.sd"} | {"model.skill_offset", "model.router_input", "model.routing", "model.fusion_source", "loss.sd_kind", "loss.sd_usage_weighted", "loss.usage", "loss.load_balance", "loss.router_z", "loss.distill"})
 
 
 def policy_label(cfg: train_config.TrainConfig) -> str:
@@ -73,10 +80,22 @@ def normalised(key: Mapping[str, Any]) -> dict:
   return training_key(train_config.from_dict(nested))
 
 
-def overrides(key: Mapping[str, Any]) -> dict:
-  """The settings of a training key that differ from its preset's defaults."""
-  preset = training_key(train_config.preset(key["preset"], policy=key["model.policy"]))
-  return {k: v for k, v in key.items() if preset.get(k) != v}
+def overrides(key: Mapping[str, Any], defaults: Mapping[str, Any]) -> dict:
+  """The settings of a training key that differ from `defaults`, its preset's training key."""
+  return {k: v for k, v in key.items() if defaults.get(k) != v}
+
+
+def row_fields(cfg: train_config.TrainConfig, record: experiment.RunRecord) -> dict:
+  """What a result carries to be tabulated: its row's label, training key and overrides
+  (against the preset's settings as `record`, the run's, holds them), and its seed."""
+  key = training_key(cfg)
+  return dict(policy=policy_label(cfg), train_seed=cfg.seed, preset=cfg.preset, config=key,
+              overrides=overrides(key, training_key(record.defaults)))
+
+
+def todays_overrides(key: Mapping[str, Any]) -> dict:
+  """The overrides of a training key against today's config file (results that carry none)."""
+  return overrides(key, training_key(experiment.preset(key["preset"], key["model.policy"])))
 
 
 def _short(name: str) -> str:
@@ -87,34 +106,49 @@ def _value(v) -> str:
   return ",".join(map(str, v)) if isinstance(v, list) else str(v)
 
 
-def row_names(keys: Sequence[Mapping[str, Any]]) -> list[str]:
-  """A readable, unique name for each distinct training key (keys must be distinct)."""
+def row_names(keys: Sequence[Mapping[str, Any]], changes: Sequence[Mapping[str, Any]]) -> list[str]:
+  """A readable, unique name for each distinct training key (keys must be distinct);
+  changes[i]: key i's overrides."""
   if len({key_id(k) for k in keys}) != len(keys):
     raise ValueError("row_names needs distinct training keys")
   labels = [_label(k) for k in keys]
-  changed = set().union(*(overrides(k) for k in keys)) | {"preset"}
-  differing = [f for f in sorted(changed, key=lambda f: (f != "preset", f))
-               if f != "model.policy" and len({json.dumps(k.get(f)) for k in keys}) > 1]
+
+  def differing(fields):
+    return [f for f in sorted(fields, key=lambda f: (f != "preset", f))
+            if f != "model.policy" and len({json.dumps(k.get(f)) for k in keys}) > 1]
 
   def name(key, label, fields):
-    shown = [f"{_short(f)}={_value(key.get(f))}" for f in fields]
-    return f"{label} ({', '.join(shown)})" if shown else label
+    parts = [f"{_short(f)}={_value(key.get(f))}" for f in fields]
+    return f"{label} ({', '.join(parts)})" if parts else label
 
-  names = [name(k, lab, [f for f in differing if not (lab == "ACT" and f in SKILLPLUG_ONLY)])
+  shown = differing(set().union(*changes) | {"preset"})
+  names = [name(k, lab, [f for f in shown if not (lab == "ACT" and f in SKILLPLUG_ONLY)])
            for k, lab in zip(keys, labels)]
   if len(set(names)) != len(names):  # ACT rows that differ only in settings ACT ignores
-    names = [name(k, lab, differing) for k, lab in zip(keys, labels)]
+    names = [name(k, lab, shown) for k, lab in zip(keys, labels)]
+  if len(set(names)) != len(names):  # runs of one preset recorded with different settings: all that differ
+    shown = differing({f for k in keys for f in k})
+    names = [name(k, lab, shown) for k, lab in zip(keys, labels)]
   return names
 
 
 def group_rows(results: Sequence[Mapping[str, Any]]) -> dict:
-  """Results (each with 'config': its training key, and 'train_seed') -> {row name: {label,
-  config, overrides, seeds}}, rows in order of first appearance, seeds likewise."""
-  keys = {}
+  """Results (each with 'config': its training key, 'overrides' and 'train_seed') -> {row name:
+  {label, config, overrides, seeds}}, rows in order of first appearance, seeds likewise."""
+  keys, changes = {}, {}
   for r in results:
-    keys.setdefault(key_id(r["config"]), r["config"])
+    i = key_id(r["config"])
+    keys.setdefault(i, r["config"])
+    if "overrides" in r:
+      changes.setdefault(i, r["overrides"])
+  old = [i for i in keys if i not in changes]
+  if old:
+    presets = sorted({keys[i]["preset"] for i in old})
+    print(f"warning: {len(old)} row(s) of results that record no overrides are named against today's "
+          f"config file(s) {', '.join(f'{p}.py' for p in presets)}", file=sys.stderr)
+    changes.update({i: todays_overrides(keys[i]) for i in old})
   rows = {}
-  for name, (i, key) in zip(row_names(list(keys.values())), keys.items()):
+  for name, (i, key) in zip(row_names(list(keys.values()), [changes[i] for i in keys]), keys.items()):
     seeds = list(dict.fromkeys(r["train_seed"] for r in results if key_id(r["config"]) == i))
-    rows[name] = dict(label=_label(key), config=key, overrides=overrides(key), seeds=seeds)
+    rows[name] = dict(label=_label(key), config=key, overrides=changes[i], seeds=seeds)
   return rows

@@ -116,8 +116,8 @@ def _controller_fns(model: ModelConfig, query_every: int, temporal: bool, ensemb
 
 def load_controller(run_dir, **kwargs) -> tuple[Controller, object]:
   """The latest checkpoint of a training run as a controller (and its TrainConfig)."""
-  from skillplug_jax.train import checkpoint, loop
+  from skillplug_jax.train import loop, run_files
   cfg, params, _ = loop.load_params(run_dir)
-  stats = checkpoint.read_stats(run_dir)
+  stats = run_files.read_stats(run_dir)
   return policy_controller(cfg.model, params, stats, **kwargs), cfg
 

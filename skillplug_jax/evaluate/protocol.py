@@ -22,9 +22,10 @@ import envs
 from envs import rollout as env_rollout
 from envs.rollout import Controller, EpisodeResults, local_devices_for, run_episodes
 from envs.env import SOLVER_LIMIT_BITS, solver_limit_counts
-from skillplug_jax.data.demos import renderer_of
+from skillplug_jax import diagnostics
 from skillplug_jax.evaluate import groups, tables
 from skillplug_jax.evaluate.policy_controller import load_controller
+from skillplug_jax.train import run_files
 
 EVAL_SEED = 1000
 VIDEO_SIZE = (128, 128)  # (H, W) of side-camera videos of state-based policies (image policies: their own size)
@@ -85,7 +86,21 @@ def evaluate_task(task: str, controller: Controller, trials: int, seed: int = EV
               mean_steps_success=float(take("first_success_step")[success].mean()) if success.any() else None,
               mean_routing=(np.nanmean(np.concatenate([r.reshape(-1, r.shape[-1]) for r in routing]), axis=0)
                             .tolist() if routing else None),
-              trial_success=success.tolist(), trial_queries=queries.tolist())
+              trial_success=success.tolist(), trial_queries=queries.tolist(),
+              **({"diagnostics": routing_diagnostics(routing, trials)} if routing else {}))
+
+
+def routing_diagnostics(parts: Sequence[np.ndarray], trials: int) -> dict:
+  """`diagnostics.routing_stats` of every query of the first `trials` trials
+  (parts: [steps, envs, K] per batch of episodes, NaN where no query), and
+  their number under 'queries' (what `diagnostics.combine_tasks` weights by)."""
+  steps = max(p.shape[0] for p in parts)
+  padded = [np.pad(p, ((0, steps - p.shape[0]), (0, 0), (0, 0)), constant_values=np.nan) for p in parts]
+  flat = np.concatenate(padded, axis=1)[:, :trials].reshape(-1, parts[0].shape[-1])
+  q = flat[~np.isnan(flat[:, 0])]
+  if not len(q):
+    return {"queries": 0}
+  return dict(diagnostics.as_json(diagnostics.routing_stats(q)), queries=int(len(q)))
 
 
 def write_routing(path: str | Path, task: str, parts: Sequence[np.ndarray], trials: int, success: np.ndarray,
@@ -137,28 +152,28 @@ def evaluate_runs(run_dirs: Sequence[str | Path], tasks: Sequence[str], trials: 
 
   Runs whose training configurations differ only in the seed (and where
   they were written) are one row's training seeds; any other difference
-  makes another row. videos > 0: GIFs of each run's first trials in
+  makes another row, named by its overrides against the run's record
+  (`run_files.read_record`). videos > 0: GIFs of each run's first trials in
   video_dir/<run name>/.
   """
   results = []
   # Every run is loaded first: a missing or damaged checkpoint fails before any evaluation.
   loaded = [(run, *load_controller(run, query_every=query_every)) for run in run_dirs]
+  records = {run: run_files.read_record(run) for run in run_dirs}
   backend = envs.resolve_backend(backend)
   for run, _, cfg in loaded:
     warn_if_other_renderer(run, cfg, backend)
   bar = tqdm(total=len(run_dirs) * len(tasks), desc="eval", unit="task", file=sys.stderr,
              disable=not progress)
   for run, controller, cfg in loaded:
-    label = groups.policy_label(cfg)
+    row = groups.row_fields(cfg, records[run])
     for task in tasks:
-      bar.set_postfix_str(f"{label} seed {cfg.seed} {task}")
+      bar.set_postfix_str(f"{row['policy']} seed {cfg.seed} {task}")
       t0 = time.time()
       r = evaluate_task(task, controller, trials, seed, batch, render=cfg.model.use_images,
                         image_size=cfg.model.image_size, videos=videos, video_dir=Path(video_dir) / Path(run).name,
                         backend=backend)
-      r.update(run=str(run), policy=label, train_seed=cfg.seed, preset=cfg.preset, config=groups.training_key(cfg),
-               trained_on=cfg.backend,
-               wall_s=round(time.time() - t0, 1))
+      r.update(run=str(run), **row, trained_on=cfg.backend, wall_s=round(time.time() - t0, 1))
       results.append(r)
       bar.update(1)
   bar.close()
@@ -171,7 +186,7 @@ def warn_if_other_renderer(run, cfg, backend: str) -> None:
   MuJoCo Warp's ray caster and OpenGL draw the same scene differently."""
   if not cfg.model.use_images:
     return
-  trained, now = renderer_of(cfg.backend), renderer_of(backend)
+  trained, now = envs.renderer_of(cfg.backend), envs.renderer_of(backend)
   if trained != now:
     print(f"WARNING: {run} is an image policy trained on {trained} images ({cfg.backend} backend) and is "
           f"evaluated on {now} images ({backend} backend); the renderers draw different pixels, so its "

@@ -21,6 +21,7 @@ from typing import Any, Mapping, Sequence
 import numpy as np
 
 import envs
+from skillplug_jax import diagnostics
 from skillplug_jax.evaluate import groups
 
 
@@ -132,8 +133,41 @@ def summarise(results: Sequence[Mapping[str, Any]], tasks: Sequence[str]) -> dic
       per_seed = [by[(i, s, t)] for s in row["seeds"]]
       rates.setdefault(name, {})[t] = [r["success_rate"] for r in per_seed]
       episodes.setdefault(name, {})[t] = [(r["trial_success"], r["trial_queries"]) for r in per_seed]
-  return dict(rows=rows, table=success_table(rates, tasks), queries=queries_table(episodes, tasks),
-              queries_paired=queries_table(episodes, tasks, paired=True))
+  out = dict(rows=rows, table=success_table(rates, tasks), queries=queries_table(episodes, tasks),
+             queries_paired=queries_table(episodes, tasks, paired=True))
+  diag = routing_diagnostics({name: {s: [by[(groups.key_id(row["config"]), s, t)] for t in tasks]
+                                     for s in row["seeds"]} for name, row in rows.items()}, tasks)
+  if diag:
+    out["diagnostics"] = diag
+  return out
+
+
+DIAGNOSTICS = ("usage_entropy", "query_entropy", "effective_skills")
+
+
+def routing_diagnostics(results: Mapping[str, Mapping[Any, Sequence[Mapping[str, Any]]]],
+                        tasks: Sequence[str]) -> dict:
+  """The routing diagnostics of each row whose results carry them (ACT+SkillPlug).
+
+  results[row][seed] = that seed's result per task, in `tasks` order. Per
+  row: `seeds`, each seed's statistics over all its tasks' queries
+  (`diagnostics.combine_tasks`, with the mutual information between task
+  and skill); `mean`, their mean and SE over seeds; `tasks`, each task's
+  statistics as mean and SE over seeds.
+  """
+  out = {}
+  for name, per_seed in results.items():
+    have = {s: [r.get("diagnostics") for r in rs] for s, rs in per_seed.items()}
+    have = {s: ds for s, ds in have.items() if all(d and d.get("queries") for d in ds)}
+    if not have:
+      continue
+    seeds = [dict(train_seed=s, **diagnostics.combine_tasks(ds)) for s, ds in have.items()]
+    keys = DIAGNOSTICS + ("task_skill_mi", "task_skill_mi_norm")
+    out[name] = dict(
+        seeds=seeds, mean={k: mean_se([d[k] for d in seeds]) for k in keys},
+        tasks={t: {k: mean_se([ds[i][k] for ds in have.values()]) for k in DIAGNOSTICS}
+               for i, t in enumerate(tasks)})
+  return out
 
 
 def _cell(cell) -> str:

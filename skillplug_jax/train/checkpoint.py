@@ -1,8 +1,8 @@
-"""Run directories: orbax checkpoints plus the JSON a policy needs to be rebuilt.
+"""A run's checkpoints: orbax saves and restores, and the integrity checks around them.
 
-    <run>/config.json       the TrainConfig (model, losses, data, optimiser)
-    <run>/norm_stats.json   the dataset's action / joint-position statistics
     <run>/checkpoints/<step>/  orbax: params, opt_state, step
+
+The JSON beside them (config.json, norm_stats.json) is `run_files`'s.
 
 Orbax writes each checkpoint into a temporary directory and renames it when
 complete, so a run killed mid-save keeps its previous checkpoint. A checkpoint
@@ -14,23 +14,12 @@ reads only the latest checkpoint's parameters (`restore_params`).
 
 from __future__ import annotations
 
-import dataclasses
 import json
 from pathlib import Path
 
 import jax
 import orbax.checkpoint as ocp
 import tensorstore as ts
-
-from skillplug_jax.atomic_json import write_json_atomic
-from skillplug_jax.train import config as train_config
-
-CONFIG_FILE = "config.json"
-STATS_FILE = "norm_stats.json"
-
-# Settings a resumed run may change without invalidating its checkpoints.
-RESUMABLE_CHANGES = {"workdir", "log_every", "ckpt_every", "keep_checkpoints", "max_steps", "epochs",
-                     "data_dir"}
 
 
 class CheckpointError(ValueError):
@@ -272,47 +261,3 @@ def short_reason(e: BaseException, limit: int = 300) -> str:
     text = text.split(tail)[0]
   text = f"{type(root).__name__}: {text}" if text else type(root).__name__
   return text if len(text) <= limit else text[:limit - 3] + "..."
-
-
-def write_run_files(run_dir: Path, cfg, stats: dict) -> None:
-  run_dir.mkdir(parents=True, exist_ok=True)
-  write_json_atomic(run_dir / CONFIG_FILE, train_config.to_dict(cfg))
-  write_json_atomic(run_dir / STATS_FILE, stats)
-
-
-def read_config(run_dir: Path) -> train_config.TrainConfig:
-  path = Path(run_dir) / CONFIG_FILE
-  if not path.exists():
-    raise CheckpointError(f"no training run at {run_dir} ({CONFIG_FILE} is missing)")
-  try:
-    return train_config.from_dict(json.loads(path.read_text()))
-  except (ValueError, TypeError, KeyError) as e:
-    raise CheckpointError(f"{path} is not a readable training config: {e}") from e
-
-
-def read_stats(run_dir: Path) -> dict:
-  path = Path(run_dir) / STATS_FILE
-  if not path.exists():
-    raise CheckpointError(f"{run_dir} has no {STATS_FILE}")
-  return json.loads(path.read_text())
-
-
-def config_differences(old, new, prefix: str = "") -> list[str]:
-  """Fields (dotted) whose values differ between two configs."""
-  diffs = []
-  for f in dataclasses.fields(old):
-    a, b = getattr(old, f.name), getattr(new, f.name)
-    if dataclasses.is_dataclass(a):
-      diffs += config_differences(a, b, prefix + f.name + ".")
-    elif a != b:
-      diffs.append(f"{prefix}{f.name}: {a!r} -> {b!r}")
-  return diffs
-
-
-def check_resumable(run_dir: Path, cfg) -> None:
-  old = read_config(run_dir)
-  diffs = [d for d in config_differences(old, cfg) if d.split(":")[0] not in RESUMABLE_CHANGES]
-  if diffs:
-    raise CheckpointError(
-        f"{run_dir} holds checkpoints of a different configuration; use another --workdir or "
-        f"delete it. Differences: {'; '.join(diffs)}")

@@ -1,9 +1,9 @@
 """Training configuration: a frozen dataclass and command-line overrides.
 
-The presets are experiment configs (experiments/configs/NAME.py); `preset`
-reads one's training settings:
+The presets are experiment configs (experiments/configs/NAME.py);
+`skillplug_jax.experiment.preset` reads one's training settings:
 
-    cfg = preset("quick", policy="act")
+    cfg = experiment.preset("quick", policy="act")
     cfg = override(cfg, ["lr=3e-4", "model.hidden=128", "loss.sd=0.5"])
 """
 
@@ -67,12 +67,6 @@ class TrainConfig:
     if self.max_steps > 0:
       return self.max_steps
     return max(1, int(round(self.epochs * num_episodes / self.batch_size)))
-
-
-def preset(name: str, policy: str = "skillplug") -> TrainConfig:
-  """The training settings of the experiment config `name` (experiments/configs/NAME.py)."""
-  from experiments import configs  # the configs import this module: load them when asked
-  return configs.get(name).train_config(policy, seed=0)
 
 
 def _parse(value: str, typ):

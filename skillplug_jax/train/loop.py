@@ -30,9 +30,10 @@ import envs
 from skillplug_jax import losses
 from skillplug_jax.data import demos as demo_data
 from skillplug_jax.data import loader as data_loader
+from skillplug_jax.experiment import RunRecord
 from skillplug_jax.model import freeze
 from skillplug_jax.model.policy import Policy
-from skillplug_jax.train import checkpoint
+from skillplug_jax.train import checkpoint, run_files
 from skillplug_jax.train.config import TrainConfig
 from skillplug_jax.train.scalars import ScalarLog
 
@@ -131,24 +132,27 @@ def load_params(run_dir: str | Path, like=None):
   checkpoint is an error that names it, not an older result.
   """
   run_dir = Path(run_dir)
-  cfg = checkpoint.read_config(run_dir)
+  cfg = run_files.read_config(run_dir)
   if like is None:
     like = jax.eval_shape(lambda: init_params(cfg, jax.random.PRNGKey(0)))
   params, step = checkpoint.restore_params(run_dir, like)
   return cfg, params, step
 
 
-def train(cfg: TrainConfig, progress: bool = True, stop_after: int | None = None) -> Path:
+def train(cfg: TrainConfig, progress: bool = True, stop_after: int | None = None,
+          record: RunRecord | None = None) -> Path:
   """Train (or resume) `cfg`; return the run directory.
 
-  stop_after: return after this many steps of this call, as a kill would
+  record: what the run keeps of its experiment config (`experiment.record`), to
+  name its table row and adapt it later; a resumed run keeps the one it started
+  with. stop_after: return after this many steps of this call, as a kill would
   (tests use it to check that resuming is exact).
   """
   cfg = dataclasses.replace(cfg, backend=envs.resolve_backend(cfg.backend))
   run_dir = cfg.run_dir
   data = load_data(cfg, progress=progress)
   if cfg.init_from:  # the frozen encoder expects the inputs normalised as in its own training
-    data = dataclasses.replace(data, stats=checkpoint.read_stats(cfg.init_from))
+    data = dataclasses.replace(data, stats=run_files.read_stats(cfg.init_from))
   n_dev = jax.device_count()
   mesh = Mesh(np.asarray(jax.devices()), ("data",))
   replicated = NamedSharding(mesh, PartitionSpec())
@@ -163,7 +167,7 @@ def train(cfg: TrainConfig, progress: bool = True, stop_after: int | None = None
   params = init_params(cfg, init_key)
   if cfg.init_from:  # few-shot: start from a multi-task run's parameters
     src_cfg, params, _ = load_params(cfg.init_from, like=params)
-    diffs = checkpoint.config_differences(src_cfg.model, cfg.model)
+    diffs = run_files.config_differences(src_cfg.model, cfg.model)
     if diffs:
       raise checkpoint.CheckpointError(f"{cfg.init_from} has a different model: {'; '.join(diffs)}")
   tx = optimizer(cfg, params, total)
@@ -173,12 +177,13 @@ def train(cfg: TrainConfig, progress: bool = True, stop_after: int | None = None
   mngr = checkpoint.manager(run_dir, cfg.keep_checkpoints)
   start = 0
   if mngr.latest_step() is not None:
-    checkpoint.check_resumable(run_dir, cfg)
+    run_files.check_resumable(run_dir, cfg)
+    record = run_files.stored_record(run_dir) or record  # the record it started with
     state, start, damaged = checkpoint.restore_latest(mngr, state, fallback=True)
     for bad in damaged:  # set aside, or orbax would skip saving their steps again
       moved = checkpoint.set_aside(mngr, bad, run_dir)
       print(f"warning: {bad}; moved it to {moved} and resuming from checkpoint {start}", file=sys.stderr)
-  checkpoint.write_run_files(run_dir, cfg, data.stats)
+  run_files.write_run_files(run_dir, cfg, data.stats, record)
 
   step_fn = jax.jit(make_train_step(cfg, tx, step_key), donate_argnums=0,
                     out_shardings=(replicated, replicated))
@@ -201,7 +206,7 @@ def train(cfg: TrainConfig, progress: bool = True, stop_after: int | None = None
               f"non-finite loss between steps {done - len(window)} and {done}: {bad}; the last good "
               f"checkpoint (step {mngr.latest_step()}) in {run_dir / 'checkpoints'} is kept")
         dt = time.perf_counter() - t_window
-        scalars = {f"loss/{k}": v for k, v in means.items() if k != "grad_norm"}
+        scalars = {(f"diag/{k[5:]}" if k.startswith("diag_") else f"loss/{k}"): v for k, v in means.items() if k != "grad_norm"}
         scalars.update({"train/grad_norm": means["grad_norm"],
                         "train/epoch": done * cfg.batch_size / data.num_episodes,
                         "train/steps_per_s": len(window) / dt,

@@ -1,0 +1,214 @@
+"""A pipeline run's summary as tables and text, and its publication: what `experiments.pipeline`
+writes once its jobs are done, and what a later run reads back as reference rows.
+
+    merged_summary   one stage's results (the jobs', a reference's) and their tables
+    variant_rows     each arm of an ablation or sweep: its rows, its routing entropy
+    report           summary.md: variants, tables, ACT+SkillPlug minus ACT, stages
+    publish          summary.{md,json} and the routing arrays, in a folder to commit
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+from skillplug_jax.atomic_json import write_json_atomic, write_text_atomic
+from skillplug_jax.evaluate import groups, tables
+from skillplug_jax.experiment import Experiment
+
+
+def merged_summary(parts: list[dict], key: str, tasks, reference: list[dict] = ()) -> dict:
+  """The jobs' results of one stage (and the reference's) and their tables: rows group every job's runs."""
+  results = list(reference) + [r for part in parts for r in part[key]]
+  return dict(results=results, **tables.summarise(results, tasks))
+
+
+def reference_results(path: str, stage: str) -> list[dict]:
+  """The results of one stage of a published summary, marked as read from it. A result from
+  before results carried their overrides takes its published row's, so that the row is named
+  as it was published, not against today's config file."""
+  p = Path(path)
+  if not p.exists():
+    raise ValueError(f"reference summary {p} does not exist (a published pipeline summary.json)")
+  part = json.loads(p.read_text()).get(stage, {})
+  published = {groups.key_id(row["config"]): row["overrides"] for row in part.get("rows", {}).values()
+               if "overrides" in row}
+  out = []
+  for r in part.get("results", []):
+    r = dict(r, reference=str(p))
+    if "overrides" not in r and groups.key_id(r["config"]) in published:
+      r["overrides"] = published[groups.key_id(r["config"])]
+    out.append(dict(r, config=groups.normalised(r["config"])))
+  return out
+
+
+def variant_rows(exp: Experiment, summary: dict) -> list[dict]:
+  """Each variant (and each reference row): its label, overrides, and its row's name in each
+  stage's tables (names depend on the rows beside it, so a stage's may differ from another's)."""
+  stages = [s for s in ("pretrain", "fewshot") if s in summary]
+
+  def row_of(stage, match):
+    return next((name for r in summary[stage]["results"] if match(r)
+                 for name, row in summary[stage]["rows"].items() if row["config"] == r["config"]), None)
+
+  out = [dict(variant=v.name, label=v.label or v.name, overrides=list(v.overrides),
+              rows={s: row_of(s, lambda r, v=v: r.get("variant") == v.name) for s in stages},
+              routing_entropy_frac=routing_entropy([r for r in summary["pretrain"]["results"]
+                                                    if r.get("variant") == v.name]))
+         for v in exp.variants]
+  if exp.reference:
+    for name, row in summary["pretrain"]["rows"].items():
+      mine = [r for r in summary["pretrain"]["results"] if r.get("reference") and r["config"] == row["config"]]
+      if not mine:
+        continue
+      out.append(dict(variant="", label=f"{name} (reference)", overrides=[],
+                      rows={s: row_of(s, lambda r, c=row["config"]: bool(r.get("reference")) and r["config"] == c)
+                            for s in stages},
+                      routing_entropy_frac=routing_entropy(mine)))
+  return out
+
+
+def routing_file(r: dict) -> Path | None:
+  """Where a result's routing array is: beside its run, or (a reference's) where it was published."""
+  if r.get("routing_file") and Path(r["routing_file"]).exists():
+    return Path(r["routing_file"])
+  if r.get("reference"):
+    published = Path(r["reference"]).parent / "routing" / (
+        f"{r['config']['model.policy']}_seed{r['train_seed']}_pretrain_{r['task']}.npz")
+    return published if published.exists() else None
+  return None
+
+
+def routing_entropy(results: list[dict]) -> float | None:
+  """Mean per-query routing entropy as a fraction of log K over these (pretraining) results
+  (1: uniform routing at every query); None without routing arrays (ACT)."""
+  from skillplug_jax.evaluate import routing
+  files = [f for f in map(routing_file, results) if f is not None]
+  if not files:
+    return None
+  return float(sum(s["entropy_frac"] for s in routing.summarise_files(files)) / len(files))
+
+
+def publish(summary: dict, text: str, dest: Path) -> None:
+  """The summary and every routing array, in one folder that can be committed and read by the notebooks.
+
+  dest/summary.{md,json}; dest/routing/[<variant>_]<policy>_seed<S>_<stage>_<task>.npz
+  (stage: pretrain or fewshot) and dest/routing/index.json, a list of
+  {policy, seed, stage, task, file, success_rate, config, variant}.
+  """
+  import shutil
+  dest = Path(dest)
+  (dest / "routing").mkdir(parents=True, exist_ok=True)
+  index = []
+  for stage in ("pretrain", "fewshot"):
+    for r in summary.get(stage, {}).get("results", []):
+      if not r.get("routing_file") or r.get("reference"):  # a reference's arrays are where it was published
+        continue
+      arm = f"{r['variant']}_" if r.get("variant") else ""
+      name = f"{arm}{r['config']['model.policy']}_seed{r['train_seed']}_{stage}_{r['task']}.npz"
+      tmp = dest / "routing" / (name + ".tmp")
+      shutil.copyfile(r["routing_file"], tmp)
+      tmp.replace(dest / "routing" / name)
+      index.append(dict(policy=r["policy"], seed=r["train_seed"], stage=stage, task=r["task"], file=name,
+                        success_rate=r["success_rate"], config=groups.key_id(r["config"]),
+                        variant=r.get("variant", "")))
+  write_json_atomic(dest / "routing" / "index.json", index)
+  write_json_atomic(dest / "summary.json", summary)
+  write_text_atomic(dest / "summary.md", text + "\n")
+
+
+def comparison(table: dict, stage: str) -> str:
+  """ACT+SkillPlug minus ACT on each task and on Avg., with the standard error of the difference
+  (the seeds of the two rows are independent runs: SE = sqrt(SE_a^2 + SE_b^2))."""
+  rows = table["rows"]
+  if "ACT" not in rows or "ACT+SkillPlug" not in rows:
+    return ""
+  parts = []
+  for key, name in zip(table["tasks"] + ["Avg."], table["abbr"] + ["Avg."]):
+    a, b = rows["ACT+SkillPlug"]["cells"][key], rows["ACT"]["cells"][key]
+    if a is None or b is None:
+      continue
+    diff = a[0] - b[0]
+    if a[1] is None or b[1] is None:
+      parts.append(f"{name} {diff:+.1f}")
+      continue
+    se = (a[1] ** 2 + b[1] ** 2) ** 0.5
+    parts.append(f"{name} {diff:+.1f} ± {se:.1f}" + (f" ({diff / se:+.1f} SE)" if se > 0 else ""))
+  line = f"ACT+SkillPlug minus ACT, {stage}: " + ", ".join(parts)
+  counts = [rows[r].get("seeds") for r in ("ACT", "ACT+SkillPlug")]
+  counts = [len(c) if isinstance(c, list) else c for c in counts if c is not None]
+  seeds = min(counts, default=None)
+  if seeds is not None and seeds < 3:
+    line += (f"\n({seeds} training seed(s) per row: this difference cannot separate the methods. At small "
+             "budgets ACT alone moves by tens of points between seeds (0, 16 and 36% on jujube_pick for "
+             "quick-preset seeds 7, 0 and 8, docs/measurements/quickstart.md); the comparison is the 3-seed, 50-trial "
+             "tables of docs/measurements/paper_protocol_cpu.md.)")
+  return line
+
+
+def _fewshot_steps(summary: dict) -> str:
+  steps = sorted({r["steps"] for r in summary["fewshot"]["results"] if r.get("steps") is not None})
+  return "/".join(map(str, steps)) or str(summary["experiment"]["fewshot"]["steps"])
+
+
+def _avg(table: dict, row: str) -> str:
+  cell = table["rows"].get(row, {}).get("cells", {}).get("Avg.")
+  return "-" if cell is None else (f"{cell[0]:.1f}" if cell[1] is None else f"{cell[0]:.1f} ± {cell[1]:.1f}")
+
+
+def per_seed_avg(summary: dict, stage: str, row: str) -> dict[int, float]:
+  """{training seed: its success rate (%) averaged over the stage's tasks} of one row."""
+  cfg = summary[stage]["rows"][row]["config"]
+  rates = {}
+  for r in summary[stage]["results"]:
+    if r["config"] == cfg:
+      rates.setdefault(r["train_seed"], []).append(100 * r["success_rate"])
+  return {s: sum(v) / len(v) for s, v in sorted(rates.items())}
+
+
+def variants_report(summary: dict) -> str:
+  """One line per arm: its Avg. success in each stage, and each seed's, so that single-seed arms can
+  be read against the same seed of the others."""
+  stages = [s for s in ("pretrain", "fewshot") if s in summary]
+  head = (["variant", "row", "seeds"] + [f"{'Multi-task' if s == 'pretrain' else 'Few-shot'} Avg. (per seed)"
+                                          for s in stages] + ["routing entropy / log K"])
+  lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
+  for v in summary["variants"]:
+    cells = []
+    for s in stages:
+      row = v["rows"].get(s)
+      if row is None:
+        cells.append("-")
+        continue
+      seeds = per_seed_avg(summary, s, row)
+      cells.append(f"{_avg(summary[s]['table'], row)} ({', '.join(f's{k}: {x:.1f}' for k, x in seeds.items())})")
+    row = v["rows"]["pretrain"]
+    seeds = summary["pretrain"]["rows"][row]["seeds"] if row else []
+    ent = v.get("routing_entropy_frac")
+    cells.append("-" if ent is None else f"{ent:.3f}")
+    lines.append(f"| {v['label']} | {row or '-'} | {','.join(map(str, seeds))} | " + " | ".join(cells) + " |")
+  return "\n".join(lines)
+
+
+def report(summary: dict) -> str:
+  exp = summary["experiment"]
+  t, d, seeds = exp["trials"], exp["train"]["demos"], exp["seeds"]
+  seeds_text = ("training seeds per row as listed under Variants" if summary.get("variants")
+                else f"{len(seeds)} training seed(s)")
+  lines = []
+  if summary.get("variants"):
+    lines += ["Variants:", "", variants_report(summary), ""]
+  lines += ["Multi-task:", "",
+            tables.report(summary["pretrain"], f"`{summary['config']}` config, {d} demos per task, "
+                          f"{seeds_text}, {t} paired trials per task"), "",
+            comparison(summary["pretrain"]["table"], "success points, multi-task"), ""]
+  if "fewshot" in summary:
+    fs = exp["fewshot"]
+    lines += ["Few-shot on the unseen tasks:", "",
+              tables.report(summary["fewshot"], f"{fs['demos']} demos, {_fewshot_steps(summary)} fine-tuning "
+                            f"steps, {t} paired trials"), "",
+              comparison(summary["fewshot"]["table"], "success points, few-shot"), ""]
+  lines += ["Stages (s): " + ", ".join(f"{k} {v:.0f}" for k, v in summary["stages_s"].items()),
+            f"Runs: {', '.join(summary['runs'])}",
+            f"Wall time: {summary['wall_s'] / 60:.1f} min on {summary['device']}, physics on {summary['backend']}."]
+  return "\n".join(lines)

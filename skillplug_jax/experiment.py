@@ -1,0 +1,208 @@
+"""Experiment configs: one small file per preset, table or figure (big_vision's pattern), and what a run
+records of the config it was trained from.
+
+A config file (experiments/configs/NAME.py) defines `get_config() -> Experiment`:
+the training settings (`train`, a `TrainConfig` whose `preset` is the file's name)
+and the evaluation protocol around them. Its docstring names the command that runs
+it. Config files are pure data: they import this module and the config classes,
+and are loaded by file, so this library never imports the `experiments` package.
+A config is loaded by name (or by path) and overridden with dotted `key=value`
+settings:
+
+    exp = experiment.get("cpu", ["seeds=0", "train.max_steps=200", "fewshot.steps=50"])
+    cfg = exp.train_config("skillplug", seed=0)
+
+A run records, in its config.json (`train.run_files`), a `RunRecord`: the config's
+name, its few-shot protocol and its training settings for the run's policy. Its
+table row is named, and it is adapted, from that record, so an old run keeps its
+meaning when the config file is edited.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import importlib.util
+import sys
+from pathlib import Path
+from typing import Iterable
+
+from skillplug_jax.train import config as train_config
+from skillplug_jax.train.config import TrainConfig
+
+
+@dataclasses.dataclass(frozen=True)
+class FewShot:
+  """The few-shot protocol: fine-tune each multi-task run on each unseen task, then evaluate it.
+
+  The paper's groups: ACT+SkillPlug retrains the router and the action
+  head (encoder, skill library, interactor and posterior frozen); ACT
+  retrains the action head only.
+  """
+  taskset: str = "discoverse_fewshot4"
+  demos: int = 10  # demonstrations per unseen task
+  steps: int = 500  # fine-tuning steps per task; 0: the source run's own `epochs`
+  trainable_act: tuple[str, ...] = ("action_head",)
+  trainable_skillplug: tuple[str, ...] = ("action_head", "router")
+
+  def trainable(self, policy: str) -> tuple[str, ...]:
+    return tuple(sorted(self.trainable_skillplug if policy == "skillplug" else self.trainable_act))
+
+
+@dataclasses.dataclass(frozen=True)
+class Variant:
+  """One arm of an experiment that varies a config (an ablation, a sweep): its runs go to
+  OUT/<name>/, its table row is named `label`, and `overrides` (the pipeline's --set syntax,
+  `train.loss.sd=0`, `seeds=0`, `run_fewshot=false`) make it from the config."""
+  name: str
+  overrides: tuple[str, ...] = ()
+  label: str = ""  # default: the name
+
+
+@dataclasses.dataclass(frozen=True)
+class Experiment:
+  """Training settings plus the protocol that evaluates them (`experiments.pipeline`)."""
+  train: TrainConfig  # model.policy and seed are set per run by `train_config`
+  policies: tuple[str, ...] = ("act", "skillplug")
+  seeds: tuple[int, ...] = (0,)  # training seeds: the replicates of each table row
+  trials: int = 50  # paired closed-loop trials per task (trial i: the same start for every run)
+  eval_seed: int = 1000
+  eval_batch: int = 50  # environments simulated at once
+  fewshot: FewShot = FewShot()
+  run_fewshot: bool = True
+  workers: int = 2  # jobs (one (policy, seed) each) run side by side in this many processes; 1: in-process
+  # Several arms (ablations, sweeps): each is this experiment with its overrides. Empty: one arm,
+  # the experiment itself, whose runs go to OUT/ as they always did.
+  variants: tuple[Variant, ...] = ()
+  # A published pipeline summary (summary.json) whose results join the tables as rows that are
+  # read, not run: the baseline a sweep is read against (e.g. docs/results/paper_cpu/summary.json).
+  reference: str = ""
+  command: str = ""  # the command that runs this config (filled from the docstring's first line)
+
+  def train_config(self, policy: str, seed: int) -> TrainConfig:
+    return dataclasses.replace(self.train, model=dataclasses.replace(self.train.model, policy=policy), seed=seed)
+
+
+@dataclasses.dataclass(frozen=True)
+class RunRecord:
+  """What a run keeps of its experiment config: enough to name its table row and to adapt it."""
+  config: str  # the config file's name (its train.preset)
+  fewshot: FewShot  # the few-shot protocol the run is adapted with by default
+  defaults: TrainConfig  # the config's training settings for the run's policy: its row names what differs
+
+
+def expand(exp: Experiment) -> list[tuple[Variant, Experiment]]:
+  """The arms of `exp`: (variant, the experiment it runs), or one unnamed arm when it has none."""
+  if not exp.variants:
+    return [(Variant(""), exp)]
+  names_seen = [v.name for v in exp.variants]
+  bad = [n for n in names_seen if not n or "/" in n or n.startswith(".")]
+  if bad or len(set(names_seen)) != len(names_seen):
+    raise ValueError(f"variant names must be distinct folder names, got {names_seen}")
+  base = dataclasses.replace(exp, variants=())
+  return [(v, train_config.override(base, v.overrides)) for v in exp.variants]
+
+
+def only(exp: Experiment, wanted: str, config: str = "") -> Experiment:
+  """`exp` with only the variants named in `wanted` (comma-separated; empty: all of them)."""
+  if not wanted:
+    return exp
+  names_wanted = wanted.split(",")
+  unknown = sorted(set(names_wanted) - {v.name for v in exp.variants})
+  if unknown:
+    raise ValueError(f"unknown variant(s) {unknown} of config {config or exp.train.preset!r}; it has: "
+                     f"{', '.join(v.name for v in exp.variants) or 'none'}")
+  return dataclasses.replace(exp, variants=tuple(v for v in exp.variants if v.name in names_wanted))
+
+
+def configs_dir() -> Path:
+  """The repository's experiments/configs/: beside this package in a checkout, else under the cwd."""
+  beside = Path(__file__).resolve().parents[1] / "experiments" / "configs"
+  return beside if beside.is_dir() else Path.cwd() / "experiments" / "configs"
+
+
+def directory(name: str, configs: str | Path | None = None) -> Path:
+  """The directory config `name` is read from: a path's own (NAME.py), else `configs`, by default
+  `configs_dir()`. Its train.preset is read from there too (`record`)."""
+  if name.endswith(".py"):
+    return Path(name).parent
+  return Path(configs) if configs is not None else configs_dir()
+
+
+def _locate(name: str, configs: str | Path | None) -> tuple[str, Path]:
+  """(config name, its directory)."""
+  return (Path(name).stem if name.endswith(".py") else name), directory(name, configs)
+
+
+def _shown(where: Path) -> str:
+  try:
+    return f"{where.resolve().relative_to(Path.cwd().resolve())}/"
+  except ValueError:
+    return f"{where}/"
+
+
+def names(configs: str | Path | None = None) -> list[str]:
+  """The configs in `configs` (default: the repository's experiments/configs/)."""
+  where = Path(configs) if configs is not None else configs_dir()
+  return sorted(p.stem for p in where.glob("*.py") if not p.name.startswith("_"))
+
+
+def _module(name: str, configs: str | Path | None):
+  name, where = _locate(name, configs)
+  if name not in names(where):
+    raise ValueError(f"unknown config {name!r}; configs in {_shown(where)}: {', '.join(names(where))}")
+  spec = importlib.util.spec_from_file_location(f"skillplug_config_{name}", where / f"{name}.py")
+  module = importlib.util.module_from_spec(spec)
+  spec.loader.exec_module(module)
+  return module
+
+
+def load(name: str, configs: str | Path | None = None) -> Experiment:
+  """The experiment config file `name` defines, as written (no command filled in, no overrides):
+  what a config built on another reads, `load("cpu", Path(__file__).parent)`."""
+  return _module(name, configs).get_config()
+
+
+def get(name: str, overrides: Iterable[str] = (), configs: str | Path | None = None) -> Experiment:
+  """The experiment config `name` (a file of `configs`, or a path to one), with `key=value` overrides."""
+  module = _module(name, configs)
+  name, where = _locate(name, configs)
+  exp = module.get_config()
+  if exp.train.preset not in names(where):
+    raise ValueError(f"{_shown(where)}{name}.py: train.preset {exp.train.preset!r} names no config; it "
+                     "must name the config its training settings come from (runs record it)")
+  if not exp.command and module.__doc__:
+    exp = dataclasses.replace(exp, command=module.__doc__.strip().splitlines()[0].strip())
+  return train_config.override(exp, overrides)
+
+
+def preset(name: str, policy: str = "skillplug", configs: str | Path | None = None) -> TrainConfig:
+  """The training settings of the experiment config `name` for `policy` (seed 0)."""
+  return get(name, configs=configs).train_config(policy, seed=0)
+
+
+def record(exp: Experiment, policy: str, configs: str | Path | None = None) -> RunRecord:
+  """What a run of `policy` under `exp` records: `exp`'s few-shot protocol, and the training
+  settings of its preset (read now, from `configs`, the directory `exp` was loaded from) that
+  its overrides are read against."""
+  return RunRecord(exp.train.preset, exp.fewshot, preset(exp.train.preset, policy, configs))
+
+
+def todays_record(preset_name: str, policy: str, run: str | Path) -> RunRecord:
+  """The record of a run trained before runs kept one: built from today's config file, with a warning."""
+  try:
+    exp = get(preset_name)
+  except ValueError as e:
+    raise ValueError(f"{run} records no experiment config and its config {preset_name!r} is not in "
+                     f"{_shown(configs_dir())}, so its row and few-shot protocol are unknown: {e}") from e
+  print(f"warning: {run} records no experiment config; its row and few-shot protocol are read from today's "
+        f"{_shown(configs_dir())}{preset_name}.py", file=sys.stderr)
+  return RunRecord(preset_name, exp.fewshot, exp.train_config(policy, seed=0))
+
+
+def record_to_dict(rec: RunRecord) -> dict:
+  return dataclasses.asdict(rec)
+
+
+def record_from_dict(d: dict) -> RunRecord:
+  fewshot = FewShot(**{k: tuple(v) if isinstance(v, list) else v for k, v in d["fewshot"].items()})
+  return RunRecord(d["config"], fewshot, train_config.from_dict(d["defaults"]))
