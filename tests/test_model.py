@@ -18,22 +18,22 @@ import pytest
 import envs
 from skillplug_jax import losses
 from skillplug_jax.data import normalization
-from experiments import configs
+from skillplug_jax import experiment
 from skillplug_jax.model import GROUPS, ModelConfig, Policy, masked_optimizer, param_groups, trainable_mask
 from skillplug_jax.model.act import ActionHead, CVAEEncoder, Encoder, num_tokens
 from skillplug_jax.model.config import LEGACY_DEFAULTS
 
 
 def paper() -> ModelConfig:
-  return configs.get("paper").train.model
+  return experiment.get("paper").train.model
 
 
 def budget() -> ModelConfig:
-  return configs.get("budget").train.model
+  return experiment.get("budget").train.model
 
 
 def quick() -> ModelConfig:
-  return configs.get("quick").train.model
+  return experiment.get("quick").train.model
 from skillplug_jax.model.interactor import INTERACTORS
 from skillplug_jax.model.posterior import TrajectorySkillPosterior
 from skillplug_jax.model.resnet import ResNet18
@@ -145,12 +145,12 @@ def test_runs_from_before_issue_12_load_as_they_were_trained():
   N(0, 1) tables in the contents, raw object state (so its checkpoints still
   evaluate, and resuming it under the new defaults is refused by the diff)."""
   from skillplug_jax.train import config as train_config
-  d = train_config.to_dict(train_config.preset("quick", "act"))
+  d = train_config.to_dict(experiment.preset("quick", "act"))
   for k in LEGACY_DEFAULTS:
     del d["model"][k]
   old = train_config.from_dict(d).model
   assert (old.positions, old.embed_init_std, old.normalize_object_state) == ("input", 1.0, False)
-  assert train_config.preset("quick", "act").model.normalize_object_state
+  assert experiment.preset("quick", "act").model.normalize_object_state
 
 
 @pytest.mark.parametrize("memory", [False, True])
@@ -297,7 +297,7 @@ def test_policy_shapes_and_groups(policy, images):
   cfg = tiny(policy, images)
   model, batch = Policy(cfg), make_batch(cfg)
   variables = jax.eval_shape(model.init, jax.random.key(0), batch)
-  expected = set(GROUPS) if policy == "skillplug" else {"encoder", "cvae", "action_head"}
+  expected = set(GROUPS) - {"action_proj"} if policy == "skillplug" else {"encoder", "cvae", "action_head"}
   assert set(variables) == {"params"} and param_groups(variables) == expected
   assert ("backbone" in variables["params"]["encoder"]) == images
   out = jax.eval_shape(lambda v: model.apply(v, batch, train=True, rngs=rngs()), variables)
@@ -305,7 +305,10 @@ def test_policy_shapes_and_groups(policy, images):
   want = {"pred_actions": (B, cfg.chunk, cfg.action_dim),
           "cvae_mu": (B, cfg.latent_dim), "cvae_logvar": (B, cfg.latent_dim)}
   if policy == "skillplug":
-    want.update(router_probs=(B, K), skill_features=(B, K, cfg.hidden), posterior_mu=(B, K, z),
+    n = num_tokens(cfg)
+    want.update(router_probs=(B, K), router_logits=(B, K), fusion_weights=(B, K),
+                skill_tokens=(B, K, n, cfg.hidden), plug_input=(B, n, cfg.hidden),
+                skill_features=(B, K, cfg.hidden), posterior_mu=(B, K, z),
                 posterior_logvar=(B, K, z), traj_logits=(B, K))
   assert {k: v.shape for k, v in out.items()} == want
   assert all(v.dtype == jnp.float32 for v in out.values())
@@ -468,7 +471,7 @@ def test_freezing_and_bsa_gradients(tiny_model):
   _, model, batch, variables, _, _ = tiny_model
   grads, bsa_grads = _group_grads(model, variables, batch)
   # every group is wired into the loss
-  for name in GROUPS:
+  for name in param_groups(variables):
     assert any(np.any(x != 0) for x in jax.tree.leaves(grads["params"][name])), name
   # L_BSA reaches the skills and the posterior heads, never the router
   assert all(np.all(x == 0) for x in jax.tree.leaves(bsa_grads["params"]["router"]))

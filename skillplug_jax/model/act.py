@@ -5,10 +5,22 @@
 `CVAEEncoder`: ACT's training-only encoder of the demonstrated chunk into the
                32-D style latent; at inference the latent is zero.
 
+`ActionProjection`: f_act's last step alone (final norm and the action
+               projection), its own parameter group with `plug_site='decoder'`.
+
 Token layout of h: [style, joint_pos, then either every camera's feature map
-cells (camera-major, row-major) or one object_state token]. One ResNet-18 is
-shared by all cameras, as in ACT's code; a learned per-camera embedding tells
-them apart.
+cells (camera-major, row-major) or the object state: one token, or one per
+object slot (`object_tokens`)]. One ResNet-18 is shared by all cameras, as in
+ACT's code; a learned per-camera embedding tells them apart.
+
+Object slots (`object_tokens='per_object'`): a task's object state is each
+object's position and quaternion (7 numbers), then its articulation angles,
+zero-padded to envs.OBJECT_STATE_DIM = 28 (envs/env.py `object_state`), so
+the padded vector is 4 slots of 7: slot i is object i's pose, the slot after
+the last object holds the angles (laptop lid, drawer) and their padding,
+later slots are zeros. A slot's meaning is the task's own object order (slot
+0 is the jujube in one task, the cup in another); the learned per-slot
+position only tells the slots apart.
 
 How positions and learned queries enter (issue 12). ACT, after DETR, adds
 its positions (learned for the style and joint tokens, sinusoidal for image
@@ -46,6 +58,8 @@ from skillplug_jax.model.resnet import ResNet18
 from skillplug_jax.model.transformer import (DecoderLayer, TransformerEncoder,
                                              sinusoidal_1d, sinusoidal_2d)
 
+OBJECT_SLOT_DIM = 7  # one object's pose in the object state: position (3) and quaternion (4)
+
 
 def _embed_init(config: ModelConfig):
   return nn.initializers.normal(stddev=config.embed_init_std)
@@ -59,9 +73,21 @@ def feature_map_size(config: ModelConfig) -> tuple[int, int]:
   return h, w
 
 
-def num_tokens(config: ModelConfig) -> int:
-  """N, the number of scene tokens the encoder emits."""
+def object_slots(width: int) -> int:
+  """How many object tokens `object_tokens='per_object'` makes of an object state this wide."""
+  if width % OBJECT_SLOT_DIM:
+    raise ValueError(f"object_tokens='per_object' needs an object state of whole {OBJECT_SLOT_DIM}-number "
+                     f"slots (position and quaternion per object); got width {width}")
+  return width // OBJECT_SLOT_DIM
+
+
+def num_tokens(config: ModelConfig, object_width: int | None = None) -> int:
+  """N, the number of scene tokens the encoder emits (object_width: the object
+  state's width, envs.OBJECT_STATE_DIM unless given)."""
   if not config.use_images:
+    if config.object_tokens == "per_object":
+      import envs  # the padded width lives with the tasks
+      return 2 + object_slots(envs.OBJECT_STATE_DIM if object_width is None else object_width)
     return 3
   h, w = feature_map_size(config)
   return 2 + len(config.cameras) * h * w
@@ -85,6 +111,8 @@ class Encoder(nn.Module):
     pos = [self.param("token_pos", _embed_init(cfg), (2, cfg.hidden)).astype(dt)]
     if cfg.use_images:
       x, image_pos = self._image_tokens(obs, batch)
+    elif cfg.object_tokens == "per_object":
+      x, image_pos = self._object_tokens(obs["object_state"].astype(dt))
     else:
       x = obs["object_state"].astype(dt)
       x = nn.relu(nn.Dense(cfg.hidden, dtype=dt, name="state_fc1")(x))
@@ -98,6 +126,16 @@ class Encoder(nn.Module):
     x = TransformerEncoder(cfg.enc_layers, cfg.hidden, cfg.heads, cfg.ff, cfg.dropout, dt,
                            cfg.pre_norm, name="transformer")(x, deterministic, pos=pos)
     return x, pos
+
+  def _object_tokens(self, state):
+    """One token per object slot [B, slots, hidden] (one MLP shared by the
+    slots) and the slots' learned positions [slots, hidden]."""
+    cfg, dt = self.config, self.config.compute_dtype
+    slots = object_slots(state.shape[-1])
+    x = state.reshape(*state.shape[:-1], slots, OBJECT_SLOT_DIM)
+    x = nn.relu(nn.Dense(cfg.hidden, dtype=dt, name="object_fc1")(x))
+    x = nn.Dense(cfg.hidden, dtype=dt, name="object_fc2")(x)
+    return x, self.param("object_pos", _embed_init(cfg), (slots, cfg.hidden)).astype(dt)
 
   def _image_tokens(self, obs, batch):
     """Feature-map cells [B, cameras * h * w, hidden] and their positions."""
@@ -148,16 +186,28 @@ class CVAEEncoder(nn.Module):
     return mu, logvar
 
 
+def project_actions(config: ModelConfig, x: jnp.ndarray) -> jnp.ndarray:
+  """Decoder steps [B, chunk, hidden] -> actions [B, chunk, A]: the final norm
+  and the action projection, built in the calling module's scope (so the
+  default head keeps its parameter names)."""
+  x = nn.LayerNorm(dtype=config.compute_dtype, name="final_norm")(x)
+  return nn.Dense(config.action_dim, dtype=jnp.float32, name="action_proj")(x).astype(jnp.float32)
+
+
 class ActionHead(nn.Module):
   """f_act: `chunk` learned queries decode the tokens into an action chunk.
 
   'qk' positions: ACT's decoder, zero contents with the learned queries as
   query positions; 'input': the learned queries are the contents.
+  project=False (`plug_site='decoder'`): stop before the final norm and
+  return (decoder steps [B, chunk, hidden], their positions [1, chunk,
+  hidden] or None); `ActionProjection` does the rest.
   """
   config: ModelConfig
+  project: bool = True
 
   @nn.compact
-  def __call__(self, memory: jnp.ndarray, memory_pos=None, deterministic: bool = True) -> jnp.ndarray:
+  def __call__(self, memory: jnp.ndarray, memory_pos=None, deterministic: bool = True):
     cfg, dt = self.config, self.config.compute_dtype
     queries = self.param("queries", _embed_init(cfg), (cfg.chunk, cfg.hidden)).astype(dt)
     shape = (memory.shape[0], cfg.chunk, cfg.hidden)
@@ -173,5 +223,15 @@ class ActionHead(nn.Module):
       outputs.append(x)
     # ACT's bug, kept as an option: every layer runs, only the first is read.
     x = outputs[0] if cfg.decoder_first_layer_only else outputs[-1]
-    x = nn.LayerNorm(dtype=dt, name="final_norm")(x)
-    return nn.Dense(cfg.action_dim, dtype=jnp.float32, name="action_proj")(x).astype(jnp.float32)
+    if not self.project:
+      return x, query_pos
+    return project_actions(cfg, x)
+
+
+class ActionProjection(nn.Module):
+  """f_act when the plug sits on the decoder's steps: final norm and projection."""
+  config: ModelConfig
+
+  @nn.compact
+  def __call__(self, x: jnp.ndarray) -> jnp.ndarray:
+    return project_actions(self.config, x)

@@ -11,8 +11,18 @@ from typing import Tuple
 
 import jax.numpy as jnp
 
+from skillplug_jax.model.interactor import INTERACTORS
+
 POLICIES = ("act", "skillplug")
 POSITIONS = ("input", "qk")
+# Readings of the paper's text and remedies beyond it (issue 27); the first
+# value of each is the paper's configuration as first built, and the default.
+PLUG_SITES = ("encoder", "decoder")
+SKILL_OFFSETS = ("sample", "mean", "none")
+ROUTER_INPUTS = ("all", "no_style", "zero_style")
+OBJECT_TOKENS = ("one", "per_object")
+ROUTINGS = ("soft", "top1")
+FUSION_SOURCES = ("router", "posterior")
 
 # What a run recorded before a field existed meant: config.json files written
 # before issue 12 lack these keys and must load as the model they trained.
@@ -71,6 +81,34 @@ class ModelConfig:
   interactor: str = "query_offset"  # see interactor.INTERACTORS
   # Softmax temperature of the router (1: the paper's softmax; below 1: sharper routing).
   router_temperature: float = 1.0
+  # Where the plug sits (policy.py). 'encoder': between encoder and decoder,
+  # h~ = sum_k r_k Interactor(h, s_k) feeds the whole decoder. 'decoder': on
+  # the decoder's per-step outputs, with f_act the final norm and action
+  # projection alone (parameter group 'action_proj', for ACT too), so few-shot
+  # can retrain a light head in both arms. The router stays chunk-level.
+  plug_site: str = "encoder"
+  # What the interactor receives in training: s_k + W z_k with z 'sample'd
+  # (the paper), z at its posterior 'mean', or s_k alone ('none': the posterior
+  # serves only its KL and BSA terms). Inference always gives s_k.
+  skill_offset: str = "sample"
+  # What the router pools: 'all' scene tokens, 'no_style' (without the
+  # training-only CVAE style token, index 0; the other tokens still saw it in
+  # the encoder's attention), or 'zero_style' (the strict form: the tokens of a
+  # second encoder pass with the style latent at zero, as at inference; one
+  # more encoder pass per training step).
+  router_input: str = "all"
+  # State-only scenes: the object state as 'one' token (an MLP of all of it)
+  # or one token 'per_object' (a shared MLP of each object's 7 numbers plus a
+  # learned per-slot position: act.py).
+  object_tokens: str = "one"
+  # Ours: 'top1' routes to the argmax skill alone, in training (straight-
+  # through: one-hot forward, softmax gradient) and at inference.
+  routing: str = "soft"
+  # Ours: 'posterior' fuses, in training, with a hard Gumbel-softmax sample of
+  # the posterior's skill assignment softmax(traj_logits) (straight-through);
+  # the router learns only by distillation to it (loss.distill) and routes at
+  # inference.
+  fusion_source: str = "router"
   dtype: str = "float32"  # compute dtype ('bfloat16' on GPUs); params stay float32
 
   def __post_init__(self):
@@ -84,6 +122,16 @@ class ModelConfig:
       raise ValueError(f"router_temperature must be > 0, got {self.router_temperature}")
     if self.decoder_first_layer_only and self.dec_layers < 1:
       raise ValueError("decoder_first_layer_only needs at least one decoder layer")
+    for name, valid in (("plug_site", PLUG_SITES), ("skill_offset", SKILL_OFFSETS),
+                        ("router_input", ROUTER_INPUTS), ("object_tokens", OBJECT_TOKENS),
+                        ("routing", ROUTINGS), ("fusion_source", FUSION_SOURCES)):
+      if getattr(self, name) not in valid:
+        raise ValueError(f"{name} must be one of {valid}, got {getattr(self, name)!r}")
+    if self.object_tokens == "per_object" and self.use_images:
+      raise ValueError("object_tokens='per_object' is for the state-only variant "
+                       "(use_images=False): an image policy never reads the object state")
+    if self.interactor not in INTERACTORS:
+      raise ValueError(f"interactor must be one of {tuple(INTERACTORS)}, got {self.interactor!r}")
 
   @property
   def compute_dtype(self):

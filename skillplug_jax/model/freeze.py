@@ -12,7 +12,8 @@ from typing import Any, Iterable, Mapping
 import jax
 import optax
 
-GROUPS = ("encoder", "cvae", "skills", "interactor", "router", "posterior", "action_head")
+GROUPS = ("encoder", "cvae", "skills", "interactor", "router", "posterior", "action_head",
+          "action_proj")  # action_proj: only with ModelConfig.plug_site="decoder"
 
 
 def _groups_tree(params: Mapping[str, Any]) -> Mapping[str, Any]:

@@ -48,6 +48,41 @@ class QueryOffsetInteractor(nn.Module):
     return u + Dropout(self.dropout)(y, deterministic=deterministic)
 
 
+class SkillTokenInteractor(nn.Module):
+  """Another reading of the paper's cross-attention (issue 27): the skill is a
+  token the scene tokens attend to.
+
+  Each scene token attends over [scene tokens; the skill's token], so keys
+  and values see the skill and a skill can write content of its own into
+  every token. Under query offsets (above) a skill can only reweight the
+  scene's own values: with three state tokens, a mixture of three vectors.
+  The skill token has no position; the rest is the query-offset layer
+  (residual, pre-normed FF block).
+  """
+  hidden: int
+  heads: int
+  ff: int
+  dropout: float = 0.0
+  dtype: jnp.dtype = jnp.float32
+
+  @nn.compact
+  def __call__(self, h, skills, deterministic: bool = True, pos=None):
+    h, skills = h.astype(self.dtype), skills.astype(self.dtype)
+    hn = nn.LayerNorm(dtype=self.dtype, name="norm1")(h)[:, None]  # [B, 1, N, D]
+    token = nn.Dense(self.hidden, dtype=self.dtype, name="skill_proj")(skills)
+    token = nn.LayerNorm(dtype=self.dtype, name="skill_norm")(token)[:, :, None]  # [B, K, 1, D]
+    scene = jnp.broadcast_to(hn, token.shape[:2] + hn.shape[2:])  # [B, K, N, D]
+    keys = jnp.concatenate([with_pos(scene, pos), token], axis=2)
+    values = jnp.concatenate([scene, token], axis=2)
+    y = MultiHeadAttention(
+        num_heads=self.heads, dropout_rate=self.dropout, dtype=self.dtype, name="attn")(
+            with_pos(hn, pos), keys, values, deterministic=deterministic)
+    u = h[:, None] + Dropout(self.dropout)(y, deterministic=deterministic)
+    y = nn.LayerNorm(dtype=self.dtype, name="norm2")(u)
+    y = FeedForward(self.hidden, self.ff, self.dropout, self.dtype, name="ff")(y, deterministic)
+    return u + Dropout(self.dropout)(y, deterministic=deterministic)
+
+
 class FiLMInteractor(nn.Module):
   """A cheaper alternative: the skill scales and shifts the normalised tokens
   (FiLM), then an FF block writes the result back onto h."""
@@ -69,4 +104,5 @@ class FiLMInteractor(nn.Module):
     return h[:, None] + Dropout(self.dropout)(y, deterministic=deterministic)
 
 
-INTERACTORS = {"query_offset": QueryOffsetInteractor, "film": FiLMInteractor}
+INTERACTORS = {"query_offset": QueryOffsetInteractor, "film": FiLMInteractor,
+               "skill_tokens": SkillTokenInteractor}

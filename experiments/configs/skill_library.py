@@ -1,0 +1,50 @@
+"""python -m experiments.pipeline --config skill_library --variants NAMES --out results/skill_library --publish docs/results/skill_library/<date>
+
+Issue 27's screen on the `cpu` preset: readings of the paper's text and remedies
+of ours against the degenerate library of `make paper-cpu` (uniform routing,
+skills that cancel), each one named variant, seed 0, multi-task and few-shot,
+read beside the committed `cpu` runs (docs/results/paper_cpu/summary.json:
+ACT and the paper's configuration, seeds 0-2). The toy problem
+(`make toy-skills`) screens first, in minutes; the variants that route there
+run here. Finalists then run seeds 0-2 (`--set seeds=0,1,2`).
+
+Readings within the paper's text:
+  tokens      the skill as a key/value token (interactor=skill_tokens), s_k without the
+              posterior's sampled offset (skill_offset=none), the router blind to the
+              training-only style token (router_input=no_style)
+  decoder     the plug on the decoder's per-step outputs, f_act the action projection;
+              few-shot retrains a light head in both arms (ACT: action_proj; ACT+SkillPlug:
+              action_proj and router), so this variant runs its own ACT arm
+Remedies of ours (not the paper's):
+  usage       + 0.5 (H(mean r) - mean H(r)) penalty: routing that is used and decisive
+  usage_sq    usage, with L_SD on squared cosines weighted by r_k r_j (antipodal pairs
+              become the worst case, and unused skills cannot satisfy it)
+  posterior   fusion trained on the posterior's skill assignment q(k | tau) (Gumbel,
+              straight-through), the router distilled to it
+  top1        hard top-1 routing (straight-through) with the usage term
+"""
+
+import dataclasses
+from pathlib import Path
+
+from skillplug_jax.experiment import Experiment, Variant, load
+
+USAGE = ("train.loss.usage=0.5",)
+
+
+def get_config() -> Experiment:
+  return dataclasses.replace(
+      load("cpu", Path(__file__).parent), policies=("skillplug",), seeds=(0,),
+      reference="docs/results/paper_cpu/summary.json",
+      variants=(
+          Variant("tokens", ("train.model.interactor=skill_tokens", "train.model.skill_offset=none",
+                             "train.model.router_input=no_style"), "skill tokens, no z offset, no style"),
+          Variant("decoder", ("train.model.plug_site=decoder", "policies=act,skillplug",
+                              "fewshot.trainable_act=action_proj",
+                              "fewshot.trainable_skillplug=action_proj,router"), "plug on the decoder"),
+          Variant("usage", USAGE, "usage 0.5 (ours)"),
+          Variant("usage_sq", USAGE + ("train.loss.sd_kind=squared", "train.loss.sd_usage_weighted=true"),
+                  "usage 0.5 + squared SD (ours)"),
+          Variant("posterior", ("train.model.fusion_source=posterior",), "fusion on q(k|tau) (ours)"),
+          Variant("top1", USAGE + ("train.model.routing=top1",), "top-1 + usage (ours)"),
+      ))

@@ -1,0 +1,435 @@
+"""Each switch of issue 27 does what it says, and the defaults are the model as it was.
+
+One tiny state-only model (hidden 32, K=3), compiled without XLA's
+optimisation passes; parameters are drawn on the host so that routing and
+latents are away from their zero starts.
+"""
+
+import dataclasses
+import functools
+import hashlib
+import math
+
+import flax.linen as nn
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optax
+import pytest
+
+import envs
+from skillplug_jax import losses
+from skillplug_jax.model import GROUPS, ModelConfig, Policy, masked_optimizer, param_groups
+from skillplug_jax.model.act import Encoder, num_tokens
+from skillplug_jax.model.interactor import INTERACTORS
+from skillplug_jax.model.posterior import TrajectorySkillPosterior
+
+FAST_COMPILE = {"xla_backend_optimization_level": 0, "xla_llvm_disable_expensive_passes": True}
+TINY = dict(hidden=32, heads=2, ff=64, enc_layers=1, dec_layers=2, cvae_enc_layers=1, chunk=6,
+            latent_dim=8, skill_latent_dim=8, alignment_dim=16, num_skills=3)
+B = 2
+
+
+def tiny(policy="skillplug", **kw) -> ModelConfig:
+  """The reference model of the defaults test; the other tests take one decoder layer
+  (`small`), which compiles faster."""
+  return ModelConfig(policy=policy, use_images=False, **{**TINY, **kw})
+
+
+def small(policy="skillplug", **kw) -> ModelConfig:
+  return tiny(policy, **{"dec_layers": 1, **kw})
+
+
+def make_batch(cfg: ModelConfig, seed: int = 0):
+  rng = np.random.default_rng(seed)
+  batch = dict(
+      joint_pos=rng.normal(size=(B, cfg.joint_dim)).astype(np.float32),
+      object_state=rng.normal(size=(B, envs.OBJECT_STATE_DIM)).astype(np.float32),
+      actions=rng.normal(size=(B, cfg.chunk, cfg.action_dim)).astype(np.float32),
+      action_mask=np.arange(cfg.chunk)[None] < np.array([cfg.chunk, 2])[:, None],
+      task_id=np.arange(B, dtype=np.int32))
+  return jax.tree.map(jnp.asarray, batch)
+
+
+def rngs(seed=0):
+  k1, k2 = jax.random.split(jax.random.key(seed))
+  return {"dropout": k1, "sample": k2}
+
+
+def host_params(cfg: ModelConfig, scale=0.2, seed=0):
+  """Parameters drawn on the host (shapes from tracing init): routing and latents away from zero."""
+  rng = np.random.default_rng(seed)
+  model = Policy(cfg)
+  abstract = jax.eval_shape(model.init, jax.random.key(0), make_batch(cfg))
+  return jax.tree.map(lambda s: jnp.asarray(scale * rng.standard_normal(s.shape), s.dtype), abstract)
+
+
+@functools.lru_cache(maxsize=None)
+def _forward_fn(cfg: ModelConfig, train: bool):
+  model = Policy(cfg)
+  return jax.jit(lambda v, b, key: model.apply(v, b, train=train, rngs=_rngs(key) if train else None),
+                 compiler_options=FAST_COMPILE)
+
+
+def _rngs(key):
+  k1, k2 = jax.random.split(key)
+  return {"dropout": k1, "sample": k2}
+
+
+def forward(cfg, variables, batch, train=True, seed=0, intercept=None):
+  """The training (or validation) pass; `intercept` (flax's method interceptor) is applied
+  while tracing, so it must not depend on the call (its function is cached with cfg)."""
+  if intercept is None:
+    return _forward_fn(cfg, train)(variables, batch, jax.random.key(seed))
+  model = Policy(cfg)
+
+  def fn(v, b, key):
+    with nn.intercept_methods(intercept):
+      return model.apply(v, b, train=train, rngs=_rngs(key) if train else None)
+  return jax.jit(fn, compiler_options=FAST_COMPILE)(variables, batch, jax.random.key(seed))
+
+
+@functools.lru_cache(maxsize=None)
+def _predict_fn(cfg: ModelConfig):
+  model = Policy(cfg)
+  return jax.jit(lambda v, b: model.apply(v, b, method=Policy.predict), compiler_options=FAST_COMPILE)
+
+
+def predict(cfg, variables, batch):
+  return _predict_fn(cfg)(variables, batch)
+
+
+def grads_of(cfg, variables, batch, weights=losses.LossWeights(), term="loss"):
+  """Gradients of the total loss (or of one metric) at rngs(0), and the metrics."""
+  model = Policy(cfg)
+
+  def objective(v):
+    loss, m = losses.total_loss(model.apply(v, batch, train=True, rngs=rngs()), batch, weights)
+    return (loss if term == "loss" else m[term]), m
+  return jax.jit(jax.grad(objective, has_aux=True), compiler_options=FAST_COMPILE)(variables)
+
+
+# ---- defaults: the model and loss as before issue 27 ----------------------------
+def _tree_digest(params) -> tuple[int, int, str]:
+  leaves = jax.tree_util.tree_leaves_with_path(params)
+  lines = sorted(f"{'/'.join(str(p.key) for p in path)}:{'x'.join(map(str, x.shape))}" for path, x in leaves)
+  return len(lines), sum(math.prod(x.shape) for _, x in leaves), hashlib.sha256("\n".join(lines).encode()).hexdigest()[:16]
+
+
+# Recorded with the code before the switches existed (same config, rngs and perturbation).
+BEFORE = {
+    "skillplug": dict(tree=(146, 64458, "ab6f729f079a4e2c"), pred_sum=81.65373229980469,
+                      grad_abs_sum=5940.25390625,
+                      metrics=dict(bsa=3.083522081375122, cvae_kl=1.6404736042022705, kl=0.9889165163040161,
+                                   loss=18.966289520263672, rec=1.1874704360961914, sd=0.768165111541748)),
+    "act": dict(tree=(110, 47063, "fb676fc668d6816e"), pred_sum=89.13853454589844,
+                grad_abs_sum=5467.73095703125,
+                metrics=dict(cvae_kl=1.6404736042022705, loss=17.795900344848633, rec=1.391164779663086)),
+}
+
+
+@pytest.mark.parametrize("policy", ["skillplug", "act"])
+def test_defaults_reproduce_the_model_and_loss_from_before(policy):
+  """Existing configs and checkpoints load and train as before: the same parameter tree, the
+  same forward pass, loss terms and gradients, at a fixed seed (diagnostics come on top)."""
+  cfg = tiny(policy)
+  model, batch = Policy(cfg), make_batch(cfg)
+  v = jax.jit(lambda b: model.init({"params": jax.random.key(0), **rngs(5)}, b, train=True),
+              compiler_options=FAST_COMPILE)(batch)
+  assert _tree_digest(v["params"]) == BEFORE[policy]["tree"]
+  leaves, tdef = jax.tree.flatten(v)
+  noise = np.random.default_rng(7)
+  v = jax.tree.unflatten(tdef, [x + jnp.asarray(0.1 * noise.standard_normal(x.shape), x.dtype) for x in leaves])
+  objective = lambda v, b: losses.total_loss(model.apply(v, b, train=True, rngs=rngs(1)), b)  # noqa: E731
+  grads, m = jax.jit(jax.grad(objective, has_aux=True), compiler_options=FAST_COMPILE)(v, batch)
+  chunk, _ = predict(cfg, v, batch)
+  want = BEFORE[policy]
+  assert {k for k in m if not k.startswith("diag_")} == set(want["metrics"])
+  for k, x in want["metrics"].items():
+    assert float(m[k]) == pytest.approx(x, rel=1e-4, abs=1e-6), k
+  assert float(sum(jnp.abs(g).sum() for g in jax.tree.leaves(grads))) == pytest.approx(want["grad_abs_sum"], rel=1e-4)
+  assert float(jnp.abs(chunk).sum()) == pytest.approx(want["pred_sum"], rel=1e-4)
+
+
+def test_switch_values_are_checked():
+  for name in ("plug_site", "skill_offset", "router_input", "object_tokens", "routing", "fusion_source",
+               "interactor"):
+    with pytest.raises(ValueError, match=name):
+      small(**{name: "nonsense"})
+  with pytest.raises(ValueError, match="state-only"):
+    ModelConfig(use_images=True, object_tokens="per_object")
+  with pytest.raises(ValueError, match="sd_kind"):
+    losses.LossWeights(sd_kind="cos")
+
+
+# ---- readings of the paper's text ----------------------------------------------
+@functools.lru_cache(maxsize=None)
+def _interactor_codes_fn(cfg: ModelConfig):
+  """A jitted training pass returning the skill codes the interactor receives and the
+  posterior's offset W z."""
+  model = Policy(cfg)
+  interactors = tuple(INTERACTORS.values())
+
+  def fn(v, b, key):
+    seen = {}
+
+    def intercept(next_fun, args, kwargs, context):
+      out = next_fun(*args, **kwargs)
+      if context.method_name == "__call__" and isinstance(context.module, interactors):
+        seen["skills"] = args[1]
+      if context.method_name == "__call__" and isinstance(context.module, TrajectorySkillPosterior):
+        seen["offset"] = out["offset"]
+      return out
+
+    with nn.intercept_methods(intercept):
+      model.apply(v, b, train=True, rngs=_rngs(key))
+    return seen
+  return jax.jit(fn, compiler_options=FAST_COMPILE)
+
+
+def test_skill_offset_sample_mean_none():
+  """'sample': the interactor's skill codes change with the posterior's draw; 'mean': they do
+  not, and are s_k + W mu_k; 'none': they are s_k whatever the posterior says."""
+  cfg = small()
+  batch = make_batch(cfg)
+  variables = host_params(cfg)
+  skills = variables["params"]["skills"]["embeddings"]
+  codes = {}
+  for mode in ("sample", "mean", "none"):
+    c = dataclasses.replace(cfg, skill_offset=mode)
+    codes[mode] = [_interactor_codes_fn(c)(variables, batch, jax.random.key(seed)) for seed in (0, 1)]
+  a, b = codes["sample"]
+  assert not np.allclose(a["skills"], b["skills"])
+  a, b = codes["mean"]
+  np.testing.assert_allclose(a["skills"], b["skills"])
+  np.testing.assert_allclose(a["skills"], skills[None] + a["offset"], rtol=1e-6)
+  assert np.abs(a["offset"]).max() > 1e-3  # W mu is not zero here
+  for seen in codes["none"]:
+    np.testing.assert_array_equal(seen["skills"], jnp.broadcast_to(skills, (B,) + skills.shape))
+
+
+@functools.lru_cache(maxsize=None)
+def _routing_with_style_token(cfg: ModelConfig):
+  """Router weights of a validation pass whose encoder's style token (h[:, 0]) is moved by `shift`."""
+  model = Policy(cfg)
+
+  def fn(v, b, shift):
+    def intercept(next_fun, args, kwargs, context):
+      out = next_fun(*args, **kwargs)
+      if isinstance(context.module, Encoder) and context.method_name == "__call__":
+        h, pos = out
+        return h.at[:, 0].add(shift), pos
+      return out
+    with nn.intercept_methods(intercept):
+      return model.apply(v, b, train=False)["router_probs"]
+  return jax.jit(fn, compiler_options=FAST_COMPILE)
+
+
+def test_router_input_no_style_does_not_read_the_style_token():
+  cfg = small()
+  batch = make_batch(cfg)
+  variables = host_params(cfg)
+  for mode, moves in (("all", True), ("no_style", False)):
+    c = dataclasses.replace(cfg, router_input=mode)
+    r0 = _routing_with_style_token(c)(variables, batch, 0.0)
+    r1 = _routing_with_style_token(c)(variables, batch, 5.0)
+    assert (not np.allclose(r0, r1, atol=1e-5)) == moves, mode
+
+
+def test_router_input_zero_style_routes_as_at_inference():
+  """'zero_style': the training pass routes from the tokens the inference path sees (style
+  latent zero), so its routing is predict's; with 'all' the CVAE latent moves it."""
+  cfg = small()
+  batch = make_batch(cfg)
+  variables = host_params(cfg)
+  for mode, same in (("zero_style", True), ("all", False)):
+    c = dataclasses.replace(cfg, router_input=mode)
+    train_routing = forward(c, variables, batch, train=False)["router_probs"]
+    _, routing = predict(c, variables, batch)
+    assert np.allclose(train_routing, routing, rtol=1e-5, atol=1e-6) == same, mode
+
+
+def test_skill_tokens_let_a_skill_write_content():
+  """Scene tokens of equal content: attention over them returns that content whatever the
+  query, so query offsets cannot tell skills apart; a skill token among the keys and values can."""
+  rng = np.random.default_rng(0)
+  K, N, D = 3, 4, 32
+  h = jnp.asarray(np.tile(rng.normal(size=(B, 1, D)), (1, N, 1)), jnp.float32)
+  skills = jnp.asarray(rng.normal(size=(B, K, D)), jnp.float32)
+  spread = {}
+  jit = lambda f: jax.jit(f, compiler_options=FAST_COMPILE)  # noqa: E731
+  for name in ("query_offset", "skill_tokens"):
+    module = INTERACTORS[name](D, 2, 64)
+    v = jit(module.init)(jax.random.key(1), h, skills)
+    u = jit(module.apply)(v, h, skills)
+    assert u.shape == (B, K, N, D)
+    spread[name] = float(jnp.abs(u - u[:, :1]).max())
+  assert spread["query_offset"] < 1e-5 and spread["skill_tokens"] > 1e-2
+  # the skill reaches u through the value projection: its gradient there is not zero
+  g = jit(jax.grad(lambda v: module.apply(v, h, skills).var(axis=1).sum()))(v)
+  assert np.abs(g["params"]["attn"]["value"]["kernel"]).max() > 0
+  assert np.abs(g["params"]["skill_proj"]["kernel"]).max() > 0
+
+
+def test_per_object_tokens():
+  """One scene token per object slot: 2 + 28 / 7 = 6 tokens; a shared projection of each
+  slot's 7 numbers with a learned slot position; moving one object moves the tokens."""
+  cfg = small(object_tokens="per_object")
+  slots = envs.OBJECT_STATE_DIM // 7
+  assert num_tokens(cfg) == 2 + slots == 6 and num_tokens(small()) == 3
+  batch = make_batch(cfg)
+  enc = Encoder(cfg)
+  v = jax.eval_shape(enc.init, jax.random.key(0), batch, jnp.zeros((B, cfg.latent_dim)))
+  rng = np.random.default_rng(0)
+  v = jax.tree.map(lambda s: jnp.asarray(0.3 * rng.standard_normal(s.shape), s.dtype), v)
+  encode = jax.jit(lambda v, b: enc.apply(v, b, jnp.zeros((B, cfg.latent_dim))), compiler_options=FAST_COMPILE)
+  p = v["params"]
+  assert p["object_fc1"]["kernel"].shape == (7, cfg.hidden) and p["object_pos"].shape == (slots, cfg.hidden)
+  assert "state_fc1" not in p
+  h, _ = encode(v, batch)
+  assert h.shape == (B, 6, cfg.hidden)
+  moved = dict(batch, object_state=batch["object_state"].at[:, 7:14].add(1.0))  # the second object
+  assert not np.allclose(encode(v, moved)[0], h, atol=1e-4)
+  with pytest.raises(ValueError, match="whole 7-number"):
+    jax.eval_shape(enc.init, jax.random.key(0), dict(batch, object_state=batch["object_state"][:, :27]),
+                   jnp.zeros((B, cfg.latent_dim)))
+
+
+# ---- remedies beyond the paper ----------------------------------------------------
+def test_top1_routes_one_hot_with_softmax_gradients():
+  cfg = small(routing="top1")
+  batch = make_batch(cfg)
+  variables = host_params(cfg)
+  out = forward(cfg, variables, batch)
+  w, r = np.asarray(out["fusion_weights"]), np.asarray(out["router_probs"])
+  np.testing.assert_allclose(w, np.eye(cfg.num_skills)[r.argmax(-1)], atol=1e-6)
+  assert r.max() < 0.999  # the router itself stays soft
+  _, routing = predict(cfg, variables, batch)
+  np.testing.assert_array_equal(routing, np.eye(cfg.num_skills)[np.asarray(routing).argmax(-1)])
+  # straight-through: reconstruction reaches the router
+  g, _ = grads_of(cfg, variables, batch, losses.LossWeights(kl=0, bsa=0, sd=0))
+  assert any(np.abs(x).max() > 0 for x in jax.tree.leaves(g["params"]["router"]))
+
+
+def test_fusion_from_the_posterior_and_router_distilled_to_it():
+  """fusion_source='posterior': training fuses with a hard sample of softmax(traj_logits);
+  the router learns from the distillation term alone; inference routes with the router."""
+  cfg = small(fusion_source="posterior")
+  batch = make_batch(cfg)
+  variables = host_params(cfg)
+  out = forward(cfg, variables, batch)
+  w = np.asarray(out["fusion_weights"])
+  np.testing.assert_allclose(w.sum(-1), 1.0, atol=1e-6)
+  np.testing.assert_allclose(w.max(-1), 1.0, atol=1e-6)
+  np.testing.assert_allclose(out["posterior_assignment"], jax.nn.softmax(out["traj_logits"]), rtol=1e-6)
+  # without noise (train=False) the fusion is the posterior's mode
+  val = forward(cfg, variables, batch, train=False)
+  np.testing.assert_array_equal(np.asarray(val["fusion_weights"]).argmax(-1), np.asarray(val["traj_logits"]).argmax(-1))
+
+  # the fusion follows the posterior: a posterior sure of skill j gives skill j in every draw
+  model = Policy(cfg)
+
+  def sure_of(v, b, key, bias):
+    def intercept(next_fun, args, kwargs, context):
+      out = next_fun(*args, **kwargs)
+      if isinstance(context.module, TrajectorySkillPosterior) and context.method_name == "__call__":
+        return dict(out, traj_logits=out["traj_logits"] + bias)
+      return out
+    with nn.intercept_methods(intercept):
+      return model.apply(v, b, train=True, rngs=_rngs(key))["fusion_weights"]
+
+  sure_of = jax.jit(sure_of, compiler_options=FAST_COMPILE)
+  for j in range(cfg.num_skills):
+    for seed in range(3):
+      fw = sure_of(variables, batch, jax.random.key(seed), 50.0 * jax.nn.one_hot(j, cfg.num_skills))
+      np.testing.assert_allclose(fw, jnp.broadcast_to(jax.nn.one_hot(j, cfg.num_skills), fw.shape), atol=1e-6)
+
+  # the router's gradient comes from the distillation term alone (weight 1 by default)
+  def split_terms(v):
+    loss, m = losses.total_loss(model.apply(v, batch, train=True, rngs=rngs()), batch)
+    return jnp.stack([loss - m["distill"], m["distill"]])
+
+  g = jax.jit(jax.jacrev(split_terms), compiler_options=FAST_COMPILE)(variables)["params"]
+  assert all(np.all(x[0] == 0) for x in jax.tree.leaves(g["router"]))
+  assert any(np.abs(x[1]).max() > 0 for x in jax.tree.leaves(g["router"]))
+  assert any(np.abs(x[0]).max() > 0 for x in jax.tree.leaves(g["posterior"]["g_tau"]))  # fusion -> posterior
+  # inference: the router's own (hard) choice
+  _, routing = predict(cfg, variables, batch)
+  r = forward(cfg, variables, batch, train=False)["router_probs"]
+  np.testing.assert_array_equal(routing, np.eye(cfg.num_skills)[np.asarray(r).argmax(-1)])
+
+
+def _to_decoder_layout(params):
+  """Default-layout parameters regrouped for plug_site='decoder' (the same values)."""
+  params = dict(params)
+  head = dict(params["action_head"])
+  params["action_proj"] = {k: head.pop(k) for k in ("final_norm", "action_proj")}
+  params["action_head"] = head
+  return params
+
+
+@pytest.mark.parametrize("policy", ["act", "skillplug"])
+def test_decoder_site_groups_and_light_head(policy):
+  """plug_site='decoder': the head splits into action_head (queries, decoder) and action_proj
+  (final norm, projection) for both policies; ACT's forward is unchanged by the split; the
+  plug reads the decoder's steps; freezing all but router and action_proj trains only those."""
+  cfg = small(policy, plug_site="decoder")
+  batch = make_batch(cfg)
+  variables = host_params(cfg)
+  groups = param_groups(variables)
+  assert "action_proj" in groups and groups <= set(GROUPS)
+  assert set(variables["params"]["action_proj"]) == {"final_norm", "action_proj"}
+  assert "final_norm" not in variables["params"]["action_head"]
+  if policy == "act":
+    default = small(policy)
+    v0 = host_params(default)
+    chunk0, _ = predict(default, v0, batch)
+    chunk1, _ = predict(cfg, {"params": _to_decoder_layout(v0["params"])}, batch)
+    np.testing.assert_allclose(chunk1, chunk0, rtol=1e-6, atol=1e-6)
+    trainable = {"action_proj"}
+  else:
+    out = forward(cfg, variables, batch)
+    assert out["plug_input"].shape == (B, cfg.chunk, cfg.hidden)
+    assert out["skill_tokens"].shape == (B, cfg.num_skills, cfg.chunk, cfg.hidden)
+    assert out["router_probs"].shape == (B, cfg.num_skills)  # chunk-level routing
+    _, routing = predict(cfg, variables, batch)
+    assert routing.shape == (B, cfg.num_skills)
+    trainable = {"router", "action_proj"}
+  grads = jax.tree.map(jnp.ones_like, variables)  # what is masked, not what the loss gives
+  opt = masked_optimizer(optax.adam(1e-2), variables, trainable)
+  updates, _ = opt.update(grads, opt.init(variables), variables)
+  new = optax.apply_updates(variables, updates)
+  for name in groups:
+    changed = any(np.any(a != b) for a, b in zip(jax.tree.leaves(new["params"][name]),
+                                                 jax.tree.leaves(variables["params"][name])))
+    assert changed == (name in trainable), name
+
+
+@pytest.mark.parametrize("kw", [dict(interactor="skill_tokens", plug_site="decoder", positions="qk"),
+                                dict(object_tokens="per_object", routing="top1", skill_offset="mean"),
+                                dict(fusion_source="posterior", router_input="zero_style")])
+def test_switches_combine_and_train_finite(kw):
+  cfg = small(**kw)
+  batch = make_batch(cfg)
+  variables = host_params(cfg)
+  model = Policy(cfg)
+  w = losses.LossWeights(sd_kind="gram", sd_usage_weighted=True, usage=0.5, load_balance=0.1, router_z=1e-3)
+  loss, m = jax.jit(lambda v: losses.total_loss(model.apply(v, batch, train=True, rngs=rngs()), batch, w),
+                    compiler_options=FAST_COMPILE)(variables)
+  assert {"usage", "load_balance", "router_z"} <= set(m)
+  assert np.isfinite(float(loss)) and all(np.isfinite(np.asarray(x)).all() for x in m.values())
+
+
+@pytest.mark.parametrize("kw", [dict(), dict(plug_site="decoder")])
+def test_plug_geometry_of_a_model_reads_the_inference_path(kw):
+  from skillplug_jax import diagnostics
+  cfg = small(**kw)
+  batch = make_batch(cfg)
+  variables = host_params(cfg)
+  g = diagnostics.plug_geometry(cfg, variables["params"], batch)
+  k = cfg.num_skills
+  assert g["cos_signed"].shape == g["cos_abs_centred"].shape == (k, k)
+  np.testing.assert_allclose(np.diag(g["cos_signed"]), 1.0, rtol=1e-5)
+  assert float(g["fused_offset_ratio"]) > 0 and np.isfinite(float(g["token_spread"]))
+  _, routing = predict(cfg, variables, batch)
+  np.testing.assert_allclose(g["routing"]["mean_routing"], np.asarray(routing).mean(0), rtol=1e-5)
