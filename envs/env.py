@@ -50,7 +50,7 @@ BACKENDS = ("auto", "mujoco", "mjx-warp")
 
 def resolve_backend(name: str) -> str:
   """'auto' is MJX-Warp when JAX sees a GPU and MuJoCo's C engine otherwise,
-  which on a CPU steps our tasks about 60x faster than Warp (README, benchmarks)."""
+  which on a CPU steps our tasks about 60x faster than Warp (docs/measurements/physics_backends.md)."""
   if name not in BACKENDS:
     raise ValueError(f"unknown backend {name!r}; valid backends: {', '.join(BACKENDS)}")
   if name == "auto":

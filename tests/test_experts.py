@@ -15,7 +15,7 @@ EPISODES = 2  # seeded episodes per task: the 100-episode table is `make experts
 # about 165 s for all 11), so Warp runs a three-block stack and an articulated
 # drawer here; its grasp and lift (jujube_pick) is the expert run of
 # tests/test_evaluate.py's engine test. `skillplug experts --backend mjx-warp`
-# runs all 11 (README: 100% on each, 100 episodes).
+# runs all 11 (docs/measurements/physics_backends.md: 100% on each, 100 episodes).
 WARP_TASKS = ("stack_block", "drawer_open")
 
 CASES = ([pytest.param(name, "mujoco", id=f"{name}-mujoco") for name in envs.TASKS]

@@ -4,8 +4,7 @@ XLA:CPU allocates each call's temporary buffer (640 MB in the paper-shape
 train step) with malloc and frees it at the end. glibc serves a block that
 large with a fresh mmap and returns it with munmap, so every call faults its
 pages in again, 4 KB at a time: 166K page faults and 0.4-1.2 s of kernel
-time per paper step on this project's CPU (README, "Measured: training
-and inference speed"). With glibc.malloc.hugetlb=1 such blocks are madvised
+time per paper step on this project's CPU (docs/measurements/speed.md). With glibc.malloc.hugetlb=1 such blocks are madvised
 onto transparent huge pages: about 900 faults per step. glibc ignores a
 misspelt tunable without a word; these tests are what notice.
 """

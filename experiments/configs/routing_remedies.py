@@ -16,7 +16,7 @@ docs/results/paper_cpu/summary.json); the one that changed the routing
 
 The loss ablation (loss_ablation.py: +KL has no SD at all) is the fourth.
 
-Measured (2026-12-02, 2-core CPU, docs/results/routing_remedies/, README):
+Measured (2026-12-02, 2-core CPU, docs/results/routing_remedies/, docs/measurements/paper_protocol_cpu.md):
 multi-task Avg. temp0.1 61.1 and sd0.01 64.6 (seed 0, routing entropy 0.97
 and 0.99 of log 4, the same cancelling geometry); film 67.2 +- 4.1 over
 seeds 0-2 against 64.7 +- 4.1 (query offset) and ACT's 70.4 +- 2.9, with the

@@ -31,7 +31,7 @@ N(0, 1). That is `ModelConfig.positions='qk'`. Our default, 'input', adds
 every position and query once to the token contents (ViT style), with the
 learned tables drawn from N(0, 0.02). Measured in closed loop (quick preset,
 ACT, 50 paired trials per task, mean over 3 training seeds; jujube_pick is
-the task that separates them; README "ACT parity"):
+the task that separates them; docs/measurements/act_parity.md):
 - before issue 12 we added N(0, 1) tables to the contents beside the raw
   object state: J.P. 22%. At N(0, 0.02), 43%; 'qk' at N(0, 1), ACT's own
   wiring, 47%, as LeRobot's ACT trained on the same batches (47%);

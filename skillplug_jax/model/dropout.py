@@ -4,8 +4,7 @@
 threefry2x32 (20 rounds) for every element. XLA:CPU does not vectorise it
 well: on this project's 2-core CPU, dropout on 10.2M activations took 120
 ms this way against 13 ms for only scaling them, and dropout cost 12% of
-the paper-shape ACT train step (issue 14; README "Measured: training and
-inference speed"). Here threefry is run once per dropout site, for a 64-bit
+the paper-shape ACT train step (issue 14; docs/measurements/speed.md). Here threefry is run once per dropout site, for a 64-bit
 seed; each element's keep bit is then a two-round integer hash of (its flat
 index, the seed) compared with keep * 2**32, a dozen vector integer ops that
 XLA fuses into the surrounding elementwise work (16 ms for the same dropout).

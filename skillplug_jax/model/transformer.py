@@ -11,7 +11,7 @@ after the stack: it trains stably from scratch and leaves the residual stream
 un-normalised for SkillPlug's interactor to add to. `False` is ACT's
 post-norm (LayerNorm after each residual add, none after an encoder stack).
 Measured in closed loop, post-norm cost our quick ACT 38 points on
-jujube_pick over 6 seeds (README, "ACT parity").
+jujube_pick over 6 seeds (docs/measurements/act_parity.md).
 """
 
 from __future__ import annotations
