@@ -18,10 +18,10 @@ export MUJOCO_GL ?= egl
 # step) gets a fresh mmap and is faulted in 4 KB page by page (166K faults, 0.4-1.2 s of kernel
 # time per step on this project's CPU). hugetlb=1 puts such blocks on transparent huge pages:
 # ~900 faults. (One arena that is never trimmed would reuse the pages outright, but the
-# contention doubled the quick preset's step.) README "Measured: training and inference speed".
+# contention doubled the quick preset's step.) docs/measurements/speed.md.
 export GLIBC_TUNABLES ?= glibc.malloc.hugetlb=1
 
-.PHONY: install test quickstart paper-cpu loss-ablation k-sweep notebooks experts demos pretrain fewshot eval bench-envs bench-loader bench-train bench-eval bench scenes clean
+.PHONY: install test quickstart toy-skills paper-cpu loss-ablation k-sweep notebooks experts demos pretrain fewshot eval bench-envs bench-loader bench-train bench-eval bench scenes clean
 
 install: $(VENV)/.installed
 
@@ -40,6 +40,14 @@ test: install
 # closed-loop evaluation, few-shot adaptation, success tables (experiments/quickstart.py).
 quickstart: install
 	$(PY) -m experiments.quickstart --out $(OUT)/quickstart
+
+# The skill library's fast screen (experiments/toy_skills.py): ACT and ACT+SkillPlug on the toy
+# point-robot problem (envs/toy_skills.py), minutes on a CPU. TOY_VARIANTS=all (or a comma list)
+# screens every variant; TOY_SEEDS=0,1,2 for mean +- SE.
+TOY_VARIANTS ?=
+TOY_SEEDS ?=
+toy-skills: install
+	$(PY) -m experiments.toy_skills --out $(OUT)/toy_skills $(if $(TOY_VARIANTS),--variants $(TOY_VARIANTS)) $(if $(TOY_SEEDS),--seeds $(TOY_SEEDS))
 
 experts: install
 	mkdir -p $(OUT)
