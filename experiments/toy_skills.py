@@ -32,8 +32,8 @@ Routing statistics (closed-loop queries of step 2, while the task ran):
                              the entropies, sklearn's default) between argmax_k r_q
                              and the primitive label of that step
 Variants are override strings in the `--set` syntax (train/config.py
-`override`) on the toy's TrainConfig; a variant naming a setting this code
-does not have (yet) is reported as skipped, with the reason.
+`override`) on the toy's TrainConfig; one naming an unknown setting stops the
+run with an error naming the variant and the setting.
 
 Writes OUT/summary.json and OUT/summary.md (the table, also printed).
 """
@@ -59,7 +59,6 @@ from tqdm import tqdm
 from envs import toy_skills as toy
 from skillplug_jax.atomic_json import write_json_atomic, write_text_atomic
 from skillplug_jax.evaluate.policy_controller import temporal_ensemble
-from skillplug_jax.model import freeze
 from skillplug_jax.model.config import ModelConfig
 from skillplug_jax.model.policy import Policy
 from skillplug_jax.train import loop
@@ -413,24 +412,15 @@ def routing_report(out: dict, k: int) -> dict:
 
 # --------------------------------------------------------------------------- one variant
 
-class Skipped(Exception):
-  """A variant this code cannot build (a setting that does not exist yet): reported, not fatal."""
-
-
 def variant_config(exp: ToyExperiment, variant: ToyVariant) -> TrainConfig:
   try:
-    cfg = override(exp.train, variant.overrides)
-  except (ValueError, TypeError) as e:
-    raise Skipped(f"override not available: {e}") from e
-  try:
-    jax.eval_shape(lambda: init_params(cfg.model, jax.random.PRNGKey(0)))
-  except (ValueError, KeyError, TypeError, NotImplementedError) as e:
-    raise Skipped(f"the model does not build with {list(variant.overrides)}: {type(e).__name__}: {e}") from e
-  return cfg
+    return override(exp.train, variant.overrides)
+  except ValueError as e:
+    raise ValueError(f"toy variant {variant.name!r}: {e}") from e
 
 
 def fewshot_groups(exp: ToyExperiment, cfg: TrainConfig) -> tuple[str, ...]:
-  decoder = getattr(cfg.model, "plug_site", "encoder") == "decoder"
+  decoder = cfg.model.plug_site == "decoder"
   if cfg.model.is_skillplug:
     return exp.fewshot_skillplug_decoder if decoder else exp.fewshot_skillplug
   return exp.fewshot_act_decoder if decoder else exp.fewshot_act
@@ -452,19 +442,14 @@ def run_seed(exp: ToyExperiment, cfg: TrainConfig, seed: int, data: dict, progre
   t2 = time.perf_counter()
 
   groups = fewshot_groups(exp, cfg)
-  try:
-    freeze.trainable_mask(params, groups)
-  except ValueError as e:
-    res["fewshot_skipped"] = f"few-shot groups {list(groups)}: {e}"
-  else:
-    fs_cfg = dataclasses.replace(cfg, trainable=tuple(sorted(groups)), max_steps=exp.fewshot_steps,
-                                 warmup_steps=min(cfg.warmup_steps, exp.fewshot_steps // 10))
-    fs = {}
-    for task in toy.UNSEEN:
-      adapted, _ = train(fs_cfg, params, data["unseen"][task], jax.random.fold_in(step_key, 1000 + task),
-                         exp.steps_per_call, desc=f"few-shot {toy.task_name(task)}", progress=progress)
-      fs.update(eval_tasks(exp, model, adapted, (task,), exp.eval_trials)[0])
-    res.update(fewshot=fs, fewshot_mean=float(np.mean(list(fs.values()))), fewshot_trainable=list(fs_cfg.trainable))
+  fs_cfg = dataclasses.replace(cfg, trainable=tuple(sorted(groups)), max_steps=exp.fewshot_steps,
+                               warmup_steps=min(cfg.warmup_steps, exp.fewshot_steps // 10))
+  fs = {}
+  for task in toy.UNSEEN:
+    adapted, _ = train(fs_cfg, params, data["unseen"][task], jax.random.fold_in(step_key, 1000 + task),
+                       exp.steps_per_call, desc=f"few-shot {toy.task_name(task)}", progress=progress)
+    fs.update(eval_tasks(exp, model, adapted, (task,), exp.eval_trials)[0])
+  res.update(fewshot=fs, fewshot_mean=float(np.mean(list(fs.values()))), fewshot_trainable=list(fs_cfg.trainable))
   t3 = time.perf_counter()
   res["time_s"] = dict(train=t1 - t0, eval_probe=t2 - t1, fewshot=t3 - t2)
   return res
@@ -506,11 +491,7 @@ def _fmt(x, pct=False, digits=2) -> str:
 def markdown(summary: dict) -> str:
   lines = ["| variant | multi-task % | few-shot % | H(r)/log K | H(mean r)/log K | eff. skills | NMI | "
            "pure skills | uniform-routing % |", "|---" * 9 + "|"]
-  notes = []
   for name, v in summary["variants"].items():
-    if v["status"] != "ok":
-      notes.append(f"- {name}: skipped ({v['reason']})")
-      continue
     probe = v["fixed_skill_probe"]
     lines.append("| " + " | ".join([
         v["label"] or name, _fmt(v["multitask_success"], True), _fmt(v["fewshot_success"], True),
@@ -520,21 +501,19 @@ def markdown(summary: dict) -> str:
   tasks = [toy.task_name(t) for t in toy.SEEN + toy.UNSEEN]
   per_task = ["", "| variant | " + " | ".join(tasks) + " |", "|---" * (len(tasks) + 1) + "|"]
   for name, v in summary["variants"].items():
-    if v["status"] != "ok":
-      continue
     cells = [_fmt(v["multitask_success"]["per_task"][t], True) for t in tasks[:len(toy.SEEN)]]
     fs = v["fewshot_success"]
     cells += [_fmt(fs["per_task"][t], True) if fs else "-" for t in tasks[len(toy.SEEN):]]
     per_task.append(f"| {name} | " + " | ".join(cells) + " |")
   probes = ["", "Fixed-skill probe (seed: skill -> primitive, purity):"]
   for name, v in summary["variants"].items():
-    if v["status"] == "ok" and v["fixed_skill_probe"]:
+    if v["fixed_skill_probe"]:
       for seed, row in zip(v["seeds"], v["fixed_skill_probe"]["per_seed"]):
         probes.append(f"- {name} seed {seed}: " + ", ".join(f"{k} {p} {q:.2f}" for k, (p, q) in row.items()))
   head = [f"Toy skills (envs/toy_skills.py): seen {', '.join(tasks[:len(toy.SEEN)])}; unseen "
           f"{', '.join(tasks[len(toy.SEEN):])} (T = toggle). Mean ± SE over seeds {summary['seeds']}; "
           f"routing over closed-loop queries on the seen tasks; NMI: argmax routing vs the primitive label.", ""]
-  return "\n".join(head + lines + per_task + probes + ([""] + notes if notes else [])) + "\n"
+  return "\n".join(head + lines + per_task + probes) + "\n"
 
 
 # --------------------------------------------------------------------------- driver
@@ -571,16 +550,9 @@ def run(exp: ToyExperiment, out: Path, progress: bool = True) -> dict:
       variants={})
   for variant in selected_variants(exp):
     entry = dict(label=variant.label or variant.name, overrides=list(variant.overrides))
-    try:
-      cfg = variant_config(exp, variant)
-    except Skipped as e:
-      print(f"{variant.name}: skipped ({e})", file=sys.stderr)
-      summary["variants"][variant.name] = dict(entry, status="skipped", reason=str(e))
-      continue
+    cfg = variant_config(exp, variant)
     seeds = [run_seed(exp, cfg, seed, data, progress) for seed in exp.seeds]
     entry.update(status="ok", policy=cfg.model.policy, seeds=list(exp.seeds), **aggregate(seeds), per_seed=seeds)
-    if any("fewshot_skipped" in s for s in seeds):
-      entry["fewshot_skipped"] = seeds[0].get("fewshot_skipped")
     summary["variants"][variant.name] = entry
     summary["time_s"] = time.perf_counter() - t_start
     write_json_atomic(out / "summary.json", summary)  # after each variant: a killed run keeps what it had

@@ -150,8 +150,8 @@ def test_probe_classes():
   assert driver.probe_classes(out, 0.15).tolist() == [1, 3, 4]
 
 
-def test_a_setting_that_does_not_exist_skips_the_variant():
-  with pytest.raises(driver.Skipped, match="no_such_field"):
+def test_a_setting_that_does_not_exist_is_an_error_naming_the_variant():
+  with pytest.raises(ValueError, match="'x'.*no_such_field"):
     driver.variant_config(driver.ToyExperiment(), driver.ToyVariant("x", ("model.no_such_field=1",)))
   exp = driver.apply_settings(driver.ToyExperiment(), ["fewshot_steps=7", "model.num_skills=3", "loss.sd=0.5"])
   assert exp.fewshot_steps == 7 and exp.train.model.num_skills == 3 and exp.train.loss.sd == 0.5
