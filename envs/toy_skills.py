@@ -11,15 +11,21 @@ three landmarks A, B, C at seeded random positions at least
 the gripper: command g = 1 until it switches; every task toggles at most
 once, so "toggle" always ends closed). A task is a sequence of 2-3
 primitives; the unseen (few-shot) tasks recombine the seen ones' primitives
-in new orders.
+in new orders, each primitive at a place in the sequence where some seen task
+has it (so every input a frozen encoder reads on an unseen task was set in
+pretraining; only the combination is new).
 
 Observation, shaped like the tabletop tasks' so `Policy` reads it unchanged
 (use_images=False, joint_dim=3, action_dim=3): joint_pos = [x, y, g];
 object_state in slots of 7 numbers, as the tabletop tasks' object poses are
 (so `model.object_tokens=per_object` gives one token per landmark): one slot
-per landmark [x, y, 0...], then [task one-hot over every task, stage
-one-hot] zero-padded to two slots. The current primitive is a function of
-(task, stage), both shown.
+per landmark [x, y, 0...], then the task as its program (for each place in
+the sequence, a one-hot over the four primitives, zeros past the task's
+end) and the stage one-hot, zero-padded to whole slots. The current
+primitive is the program's entry at the stage, both shown. (A first version
+showed a task one-hot: the unseen tasks' bits were never set in pretraining,
+so few-shot adaptation with the encoder frozen could not see which task it
+was; docs/measurements/skill_library.md.)
 Action = absolute target [x, y, g]: the robot moves towards (x, y) by at
 most `max_step` per control step; the gripper switches once the command
 (g > 0.5) has differed from it for `toggle_steps` consecutive steps.
@@ -49,7 +55,7 @@ _SYMBOL = "ABCT"
 
 # Seen (multi-task) and unseen (few-shot) tasks: sequences of primitive ids.
 SEEN_TASKS = ((0, 1), (1, 2), (2, 0), (0, 3, 1), (1, 3, 2), (2, 3, 0))
-UNSEEN_TASKS = ((1, 0), (0, 3, 2), (2, 1, 3))
+UNSEEN_TASKS = ((1, 0), (0, 3, 2), (2, 1, 0))  # B>A, A>T>C, C>B>A
 TASKS = SEEN_TASKS + UNSEEN_TASKS
 MAX_STAGES = max(len(t) for t in TASKS)
 NUM_TASKS = len(TASKS)
@@ -59,10 +65,11 @@ UNSEEN = tuple(range(len(SEEN_TASKS), NUM_TASKS))
 JOINT_DIM = 3
 ACTION_DIM = 3
 SLOT = 7  # numbers per object slot (a tabletop object's position and quaternion)
-_INFO_SLOTS = -(-(NUM_TASKS + MAX_STAGES) // SLOT)
+_PROGRAM_WIDTH = MAX_STAGES * len(PRIMITIVES)
+_INFO_SLOTS = -(-(_PROGRAM_WIDTH + MAX_STAGES) // SLOT)
 OBJECT_STATE_DIM = SLOT * (3 + _INFO_SLOTS)
-TASK_BITS = slice(3 * SLOT, 3 * SLOT + NUM_TASKS)  # where object_state shows the task
-STAGE_BITS = slice(TASK_BITS.stop, TASK_BITS.stop + MAX_STAGES)  # and the stage
+PROGRAM_BITS = slice(3 * SLOT, 3 * SLOT + _PROGRAM_WIDTH)  # where object_state shows the task's program
+STAGE_BITS = slice(PROGRAM_BITS.stop, PROGRAM_BITS.stop + MAX_STAGES)  # and the stage
 
 # [tasks, MAX_STAGES] primitive ids, -1 past a task's end; [tasks] lengths.
 TASK_TABLE = np.array([t + (-1,) * (MAX_STAGES - len(t)) for t in TASKS], np.int32)
@@ -136,7 +143,8 @@ def primitive(state: State) -> jax.Array:
 def observe(state: State) -> dict:
   """The policy's view: joint_pos [3], object_state [OBJECT_STATE_DIM] (no stage bit once done)."""
   slots = jnp.pad(state.landmarks, ((0, 0), (0, SLOT - 2))).reshape(-1)
-  info = jnp.concatenate([jax.nn.one_hot(state.task, NUM_TASKS),
+  program = jax.nn.one_hot(jnp.asarray(TASK_TABLE)[state.task], len(PRIMITIVES)).reshape(-1)  # -1: zeros
+  info = jnp.concatenate([program,
                           jax.nn.one_hot(state.stage, MAX_STAGES) * (state.stage < num_stages(state))])
   obj = jnp.concatenate([slots, jnp.pad(info, (0, OBJECT_STATE_DIM - slots.shape[0] - info.shape[0]))])
   return {"joint_pos": jnp.concatenate([state.pos, state.grip[None]]),

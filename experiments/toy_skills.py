@@ -43,6 +43,7 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import functools
+import json
 import math
 import platform
 import subprocess
@@ -104,6 +105,11 @@ VARIANTS = (
     ToyVariant("load_balance", ("loss.load_balance=0.01",), "load balance 0.01 (ours)"),
     ToyVariant("router_z", ("loss.router_z=0.001",), "router z-loss 0.001 (ours)"),
     ToyVariant("decoder_usage", ("model.plug_site=decoder",) + USAGE, "decoder + usage 0.5 (ours)"),
+    ToyVariant("decoder_top1", ("model.plug_site=decoder", "model.routing=top1") + USAGE,
+               "decoder + top-1 + usage 0.5 (ours)"),
+    ToyVariant("tokens_usage", ("model.interactor=skill_tokens", "model.skill_offset=none",
+                                "model.router_input=no_style") + USAGE, "skill tokens, no z, no style + usage 0.5 (ours)"),
+    ToyVariant("per_object_usage", ("model.object_tokens=per_object",) + USAGE, "token per object + usage 0.5 (ours)"),
 )
 DEFAULT_VARIANTS = ("act", "skillplug_paper")
 
@@ -118,8 +124,8 @@ def toy_train_config() -> TrainConfig:
   3000 steps was 0.1 (0.04 without).
 
   Inputs and actions are not normalised: they already lie in [-1, 1] (gripper
-  {0, 1}), and z-scoring the unseen tasks' one-hot bits, never set in the seen
-  demos (std clipped to 0.01), would feed the frozen encoder values of 100.
+  {0, 1}, the task's program and stage one-hot), and z-scoring one-hot bits that are rare in the
+  seen demos (std clipped to 0.01) would feed the frozen encoder values of up to 100.
   """
   model = ModelConfig(use_images=False, joint_dim=toy.JOINT_DIM, action_dim=toy.ACTION_DIM, chunk=8,
                       hidden=64, heads=4, ff=128, enc_layers=2, dec_layers=2, cvae_enc_layers=1,
@@ -538,8 +544,36 @@ def make_data(exp: ToyExperiment) -> dict:
   return dict(seen=seen, unseen=unseen)
 
 
+def _settings(exp: ToyExperiment) -> dict:
+  """What a finished variant's numbers depend on besides its overrides: the config as JSON, less
+  the variant and seed lists."""
+  cfg = json.loads(json.dumps(dataclasses.asdict(exp)))
+  cfg.pop("variants")
+  cfg.pop("seeds")
+  return cfg
+
+
+def finished_variants(exp: ToyExperiment, out: Path) -> dict:
+  """Variants OUT/summary.json already holds with these settings, overrides and seeds: a rerun of
+  the same command resumes after the last finished variant instead of starting again."""
+  path = out / "summary.json"
+  if not path.exists():
+    return {}
+  try:
+    old = json.loads(path.read_text())
+  except (OSError, json.JSONDecodeError) as e:
+    raise ValueError(f"{path} exists but cannot be read ({e}); move it away to start afresh") from e
+  if _settings(exp) != {k: v for k, v in old.get("config", {}).items() if k not in ("variants", "seeds")}:
+    return {}
+  known = {v.name: v for v in VARIANTS}
+  return {name: entry for name, entry in old.get("variants", {}).items()
+          if name in known and entry.get("overrides") == list(known[name].overrides)
+          and entry.get("seeds") == list(exp.seeds) and entry.get("status") == "ok"}
+
+
 def run(exp: ToyExperiment, out: Path, progress: bool = True) -> dict:
   t_start = time.perf_counter()
+  done = finished_variants(exp, out)
   data = make_data(exp)
   summary = dict(
       cpu=cpu_name(), devices=[str(d) for d in jax.devices()], seeds=list(exp.seeds),
@@ -549,6 +583,11 @@ def run(exp: ToyExperiment, out: Path, progress: bool = True) -> dict:
       routing_measured_on="closed-loop queries on the seen tasks (multi-task evaluation), steps before success",
       variants={})
   for variant in selected_variants(exp):
+    if variant.name in done:
+      summary["variants"][variant.name] = done[variant.name]
+      if progress:
+        print(f"{variant.name}: already in {out / 'summary.json'} with these settings; kept", file=sys.stderr)
+      continue
     entry = dict(label=variant.label or variant.name, overrides=list(variant.overrides))
     cfg = variant_config(exp, variant)
     seeds = [run_seed(exp, cfg, seed, data, progress) for seed in exp.seeds]

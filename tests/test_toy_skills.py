@@ -77,16 +77,23 @@ def test_last_stage_must_hold_and_toggle_needs_consecutive_commands():
   assert int(s.stage) == 1 and not bool(s.success)
   s = _hold(s, [0.6, -0.6, 0.0], 20)
   assert bool(s.success)
-  task = toy.TASKS.index((2, 1, 3))  # C, B, toggle (unseen)
-  s = _state(task, [0.0, 0.0], stage=2)
+  task = toy.TASKS.index((0, 3, 1))  # A, toggle, B: at the toggle
+  s = _state(task, [0.0, 0.0], stage=1)
   s = _hold(s, [0.0, 0.0, 1.0], CFG.toggle_steps - 1)
   s = _step(s, jnp.array([0.0, 0.0, 0.0]))  # interrupted: the count restarts
   s = _hold(s, [0.0, 0.0, 1.0], CFG.toggle_steps - 1)
-  assert float(s.grip) == 0.0 and not bool(s.success)
+  assert float(s.grip) == 0.0 and int(s.stage) == 1
   s = _hold(s, [0.0, 0.0, 1.0], 1)
-  assert float(s.grip) == 1.0 and not bool(s.success)  # switched; the last stage holds first
-  s = _hold(s, [0.0, 0.0, 1.0], CFG.hold_steps)
-  assert bool(s.success)
+  assert float(s.grip) == 1.0 and int(s.stage) == 2 and not bool(s.success)
+
+
+def test_unseen_tasks_recombine_what_seen_tasks_show():
+  """Every (place in the sequence, primitive) of an unseen task occurs in some seen task, so a
+  frozen encoder reads only inputs set in pretraining; the sequences themselves are new."""
+  seen = {(i, p) for t in toy.SEEN_TASKS for i, p in enumerate(t)}
+  for t in toy.UNSEEN_TASKS:
+    assert t not in toy.SEEN_TASKS
+    assert {(i, p) for i, p in enumerate(t)} <= seen, t
 
 
 def test_bounded_step_and_landmark_separation():
@@ -106,7 +113,8 @@ def test_observation_and_action_shapes_fit_the_model():
   assert toy.OBJECT_STATE_DIM % toy.SLOT == 0  # whole object slots (model.object_tokens=per_object)
   slots = np.asarray(obs["object_state"][:, :3 * toy.SLOT]).reshape(-1, 3, toy.SLOT)
   np.testing.assert_array_equal(slots[..., :2], np.asarray(s.landmarks))
-  assert (np.asarray(obs["object_state"][:, toy.TASK_BITS]).argmax(-1) == np.arange(toy.NUM_TASKS)).all()
+  program = np.asarray(obs["object_state"][:, toy.PROGRAM_BITS]).reshape(toy.NUM_TASKS, toy.MAX_STAGES, -1)
+  np.testing.assert_array_equal(np.where(program.any(-1), program.argmax(-1), -1), toy.TASK_TABLE)
   assert (np.asarray(obs["object_state"][:, toy.STAGE_BITS]).argmax(-1) == 0).all()
   assert jax.vmap(toy.expert)(s).shape == (toy.NUM_TASKS, model.action_dim)
   def predict():  # shapes only (eval_shape): nothing is compiled
@@ -177,3 +185,11 @@ def test_driver_writes_the_summary(tmp_path):
   assert 1.0 - 1e-6 <= v["effective_skills"]["mean"] <= 4.0 + 1e-6
   assert len(v["per_seed"][0]["fixed_skill_probe"]["skills"]) == 4
   assert (tmp_path / "summary.md").exists()
+
+  # the same command again keeps the finished variant (resumes); other settings recompute it
+  summary["variants"]["skillplug_paper"]["marker"] = 1
+  (tmp_path / "summary.json").write_text(json.dumps(summary))
+  assert driver.main(argv) == 0
+  assert json.loads((tmp_path / "summary.json").read_text())["variants"]["skillplug_paper"]["marker"] == 1
+  assert driver.main(argv + ["--set", "eval_seed=7"]) == 0
+  assert "marker" not in json.loads((tmp_path / "summary.json").read_text())["variants"]["skillplug_paper"]
