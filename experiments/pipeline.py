@@ -197,9 +197,7 @@ def main(argv=None, default_config: str = "cpu", default_out: str = "") -> int:
   try:
     exp = experiment.get(args.config, args.set)
     exp = experiment.only(exp, args.variants, args.config)
-    if (any(not arm.seeds or not arm.policies for _, arm in experiment.expand(exp))
-        or exp.trials < 1 or exp.workers < 1):
-      raise ValueError("seeds and policies must be non-empty, trials and workers >= 1")
+    experiment.expand(exp)  # each variant's settings are checked before any work
     out = Path(args.out or f"results/{Path(args.config).stem}")
     summary = run(exp, out, experiment.directory(args.config))
   except (ValueError, RuntimeError) as e:  # a worker's error arrives here; finished stages are kept

@@ -26,8 +26,36 @@ import sys
 from pathlib import Path
 from typing import Iterable
 
+from skillplug_jax import validation
+from skillplug_jax.model.config import POLICIES
+from skillplug_jax.model.freeze import GROUPS
 from skillplug_jax.train import config as train_config
 from skillplug_jax.train.config import TrainConfig
+
+
+_GROUPS = validation.each(validation.one_of(GROUPS), distinct=True)
+_FEWSHOT_RULES = dict(taskset=validation.text(), demos=validation.count(1),
+                      steps=validation.count(0, " (0: the source run's own `epochs`)"),
+                      trainable_act=_GROUPS, trainable_skillplug=_GROUPS)
+# Each (policy, seed) is one run directory: a policy or seed given twice would train it twice at once.
+_EXPERIMENT_RULES = dict(
+    policies=validation.each(validation.one_of(POLICIES), nonempty=True, distinct=True),
+    seeds=validation.each(validation.count(0), nonempty=True, distinct=True), trials=validation.count(1),
+    eval_seed=validation.count(0), eval_batch=validation.count(1), run_fewshot=validation.flag(),
+    workers=validation.count(1))
+
+
+def _variant_names_ok(exp: "Experiment") -> bool:
+  names_seen = [v.name for v in exp.variants]
+  return (len(set(names_seen)) == len(names_seen)
+          and all(n and "/" not in n and not n.startswith(".") for n in names_seen))
+
+
+_EXPERIMENT_RELATIONS = (
+    validation.Relation("variants", _variant_names_ok,
+                        lambda e: "distinct folder names (non-empty, no '/', not starting with '.')",
+                        lambda e: [v.name for v in e.variants]),
+)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -43,6 +71,9 @@ class FewShot:
   steps: int = 500  # fine-tuning steps per task; 0: the source run's own `epochs`
   trainable_act: tuple[str, ...] = ("action_head",)
   trainable_skillplug: tuple[str, ...] = ("action_head", "router")
+
+  def __post_init__(self):
+    validation.check(self, "fewshot.", _FEWSHOT_RULES)
 
   def trainable(self, policy: str) -> tuple[str, ...]:
     return tuple(sorted(self.trainable_skillplug if policy == "skillplug" else self.trainable_act))
@@ -78,6 +109,9 @@ class Experiment:
   reference: str = ""
   command: str = ""  # the command that runs this config (filled from the docstring's first line)
 
+  def __post_init__(self):
+    validation.check(self, "", _EXPERIMENT_RULES, _EXPERIMENT_RELATIONS)
+
   def train_config(self, policy: str, seed: int) -> TrainConfig:
     return dataclasses.replace(self.train, model=dataclasses.replace(self.train.model, policy=policy), seed=seed)
 
@@ -94,10 +128,6 @@ def expand(exp: Experiment) -> list[tuple[Variant, Experiment]]:
   """The arms of `exp`: (variant, the experiment it runs), or one unnamed arm when it has none."""
   if not exp.variants:
     return [(Variant(""), exp)]
-  names_seen = [v.name for v in exp.variants]
-  bad = [n for n in names_seen if not n or "/" in n or n.startswith(".")]
-  if bad or len(set(names_seen)) != len(names_seen):
-    raise ValueError(f"variant names must be distinct folder names, got {names_seen}")
   base = dataclasses.replace(exp, variants=())
   return [(v, train_config.override(base, v.overrides)) for v in exp.variants]
 

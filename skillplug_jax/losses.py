@@ -34,7 +34,7 @@ from typing import Mapping
 import jax
 import jax.numpy as jnp
 
-from skillplug_jax import diagnostics
+from skillplug_jax import diagnostics, validation
 
 SD_KINDS = ("cosine", "squared", "gram")
 
@@ -158,6 +158,12 @@ def router_distillation(router_probs: jnp.ndarray, assignment: jnp.ndarray) -> j
   return -(target * log_r).sum(axis=-1).mean()
 
 
+# A weight of 0 turns its term off; a negative one would reward what the term penalises.
+_WEIGHT_RULES = dict({name: validation.number(0) for name in (
+    "rec", "kl", "bsa", "sd", "cvae_kl", "usage", "load_balance", "router_z", "distill")},
+    sd_kind=validation.one_of(SD_KINDS), sd_usage_weighted=validation.flag())
+
+
 @dataclasses.dataclass(frozen=True)
 class LossWeights:
   """Loss weights. The paper gives no lambdas: these are placeholders for the
@@ -199,8 +205,7 @@ class LossWeights:
   distill: float = 1.0  # router -> posterior assignment; only with fusion_source='posterior'
 
   def __post_init__(self):
-    if self.sd_kind not in SD_KINDS:
-      raise ValueError(f"sd_kind must be one of {SD_KINDS}, got {self.sd_kind!r}")
+    validation.check(self, "loss.", _WEIGHT_RULES)
 
 
 def total_loss(outputs: Mapping[str, jnp.ndarray], batch: Mapping[str, jnp.ndarray],

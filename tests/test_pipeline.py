@@ -316,7 +316,9 @@ def test_pipeline_cli_rejects_bad_configs(capsys):
   assert pipeline.main(["--config", "nope"]) == 2
   assert "unknown config 'nope'" in capsys.readouterr().err
   assert pipeline.main(["--config", "quick", "--set", "seeds="]) == 2
-  assert "seeds and policies must be non-empty" in capsys.readouterr().err
+  assert "seeds must be a non-empty tuple of distinct integers >= 0, got ()" in capsys.readouterr().err
+  assert pipeline.main(["--config", "k_sweep", "--set", "train.model.num_skills=0"]) == 2
+  assert "train.model.num_skills must be an integer >= 1, got 0" in capsys.readouterr().err
 
 
 def test_routing_statistics_tell_uniform_from_specialised(tmp_path):

@@ -5,6 +5,8 @@ written by one rename), so a killed run resumes with the tasks it finished.
 The tfds dataset is then built in `<out>/.<name>.building/` and moved to
 `<out>/<name>/` by a rename: a dataset directory either is complete or does
 not exist. Running again with the same arguments reuses the finished dataset.
+One process writes a dataset (its lock, `<out>/.<name>.writer.lock`: `dir_lock`);
+a second stops at once, naming the first. Readers take no lock.
 """
 
 from __future__ import annotations
@@ -22,6 +24,7 @@ from tqdm import tqdm
 
 import envs
 from envs import rollout
+from skillplug_jax import dir_lock
 from skillplug_jax.data import normalization, rlds
 from skillplug_jax.data.recording import Episode, record_expert
 
@@ -63,13 +66,24 @@ def make_demos(cfg: DemoConfig, out: str | os.PathLike = "results/datasets", pro
   tasks = cfg.tasks  # validates names
   final = dataset_path(cfg, out)
   if final.exists():
-    builder = rlds.open_dataset(final)  # raises if it is not a complete dataset
-    if rlds.spec_of(builder) != cfg.spec:
-      raise rlds.DatasetError(f"{final} exists but holds {rlds.spec_of(builder)}, not {cfg.spec}")
-    if progress:
-      print(f"reusing {final}", file=sys.stderr)
-    return final
+    return _reused(cfg, final, progress)
+  with dir_lock.DirLock(out, name=f".{cfg.name}{dir_lock.LOCK_NAME}", what=f"dataset {final}"):
+    if final.exists():  # a writer that held the lock finished it meanwhile
+      return _reused(cfg, final, progress)
+    return _write(cfg, out, tasks, final, progress)
 
+
+def _reused(cfg: DemoConfig, final: Path, progress: bool) -> Path:
+  builder = rlds.open_dataset(final)  # raises if it is not a complete dataset
+  if rlds.spec_of(builder) != cfg.spec:
+    raise rlds.DatasetError(f"{final} exists but holds {rlds.spec_of(builder)}, not {cfg.spec}")
+  if progress:
+    print(f"reusing {final}", file=sys.stderr)
+  return final
+
+
+def _write(cfg: DemoConfig, out: str | os.PathLike, tasks: tuple[str, ...], final: Path, progress: bool) -> Path:
+  """Generate the dataset (under its lock: one writer per dataset, `dir_lock`)."""
   # Staged episodes are only reused by the recording format that made them.
   staging = Path(out) / f".{cfg.name}.staging-v{rlds.FORMAT_VERSION}"
   staging.mkdir(parents=True, exist_ok=True)

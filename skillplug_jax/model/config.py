@@ -11,6 +11,7 @@ from typing import Tuple
 
 import jax.numpy as jnp
 
+from skillplug_jax import validation
 from skillplug_jax.model.interactor import INTERACTORS
 
 POLICIES = ("act", "skillplug")
@@ -23,11 +24,41 @@ ROUTER_INPUTS = ("all", "no_style", "zero_style")
 OBJECT_TOKENS = ("one", "per_object")
 ROUTINGS = ("soft", "top1")
 FUSION_SOURCES = ("router", "posterior")
+DTYPES = ("float32", "bfloat16", "float16")
+# envs.robot.CAMERAS, copied: envs is slow to import and a config must be cheap to build
+# (tests/test_config_validation.py keeps the two equal).
+CAMERAS = ("side", "wrist")
 
 # What a run recorded before a field existed meant: config.json files written
 # before issue 12 lack these keys and must load as the model they trained.
 LEGACY_DEFAULTS = dict(positions="input", embed_init_std=1.0, pre_norm=True,
                        cvae_zero_init=True, normalize_object_state=False)
+
+
+_count, _number, _one_of = validation.count, validation.number, validation.one_of
+# What each field allows (layer counts may be 0 where the stack handles none: the encoder's
+# tokens are then their projections; the decoder needs a layer to read).
+_RULES = dict(
+    policy=_one_of(POLICIES), use_images=validation.flag(),
+    cameras=validation.each(_one_of(CAMERAS), nonempty=True, distinct=True),
+    image_size=validation.each(_count(1), length=2), joint_dim=_count(1), action_dim=_count(1),
+    chunk=_count(1), hidden=_count(1), heads=_count(1), ff=_count(1), enc_layers=_count(0),
+    dec_layers=_count(1), decoder_first_layer_only=validation.flag(), dropout=_number(0, 1),
+    positions=_one_of(POSITIONS), embed_init_std=_number(0), pre_norm=validation.flag(),
+    cvae_zero_init=validation.flag(), normalize_object_state=validation.flag(), latent_dim=_count(1),
+    cvae_enc_layers=_count(0), backbone_width=_count(1), num_skills=_count(1),
+    skill_latent_dim=_count(1), alignment_dim=_count(1), interactor=_one_of(INTERACTORS),
+    router_temperature=_number(above=0), plug_site=_one_of(PLUG_SITES),
+    skill_offset=_one_of(SKILL_OFFSETS), router_input=_one_of(ROUTER_INPUTS),
+    object_tokens=_one_of(OBJECT_TOKENS), routing=_one_of(ROUTINGS),
+    fusion_source=_one_of(FUSION_SOURCES), router_cue_slots=_count(0), dtype=_one_of(DTYPES))
+_RELATIONS = (
+    validation.Relation("hidden", lambda c: c.hidden % c.heads == 0,
+                        lambda c: f"divisible by heads ({c.heads})"),
+    validation.Relation("object_tokens", lambda c: not (c.use_images and c.object_tokens == "per_object"),
+                        lambda c: "'one' for an image policy (it never reads the object state; "
+                                  "'per_object' is for the state-only variant, use_images=False)"),
+)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -109,29 +140,17 @@ class ModelConfig:
   # the router learns only by distillation to it (loss.distill) and routes at
   # inference.
   fusion_source: str = "router"
+  # Ours: the last N object-state slots (7 numbers each) are a cue that only
+  # the router reads (added to its pooled input through a Dense layer); the
+  # encoder sees them zeroed. The decoder can then learn what the cue says only
+  # through the routing: a bottleneck that makes the routing carry behaviour
+  # (docs/measurements/skill_library.md). 0: the paper's (both read everything).
+  # ACT, which has no router, reads everything either way.
+  router_cue_slots: int = 0
   dtype: str = "float32"  # compute dtype ('bfloat16' on GPUs); params stay float32
 
   def __post_init__(self):
-    if self.policy not in POLICIES:
-      raise ValueError(f"policy must be one of {POLICIES}, got {self.policy!r}")
-    if self.positions not in POSITIONS:
-      raise ValueError(f"positions must be one of {POSITIONS}, got {self.positions!r}")
-    if self.hidden % self.heads:
-      raise ValueError(f"hidden ({self.hidden}) must be divisible by heads ({self.heads})")
-    if not self.router_temperature > 0:
-      raise ValueError(f"router_temperature must be > 0, got {self.router_temperature}")
-    if self.decoder_first_layer_only and self.dec_layers < 1:
-      raise ValueError("decoder_first_layer_only needs at least one decoder layer")
-    for name, valid in (("plug_site", PLUG_SITES), ("skill_offset", SKILL_OFFSETS),
-                        ("router_input", ROUTER_INPUTS), ("object_tokens", OBJECT_TOKENS),
-                        ("routing", ROUTINGS), ("fusion_source", FUSION_SOURCES)):
-      if getattr(self, name) not in valid:
-        raise ValueError(f"{name} must be one of {valid}, got {getattr(self, name)!r}")
-    if self.object_tokens == "per_object" and self.use_images:
-      raise ValueError("object_tokens='per_object' is for the state-only variant "
-                       "(use_images=False): an image policy never reads the object state")
-    if self.interactor not in INTERACTORS:
-      raise ValueError(f"interactor must be one of {tuple(INTERACTORS)}, got {self.interactor!r}")
+    validation.check(self, "model.", _RULES, _RELATIONS)
 
   @property
   def compute_dtype(self):

@@ -13,12 +13,29 @@ import dataclasses
 import typing
 from pathlib import Path
 
+from skillplug_jax import validation
 from skillplug_jax.losses import LossWeights
 from skillplug_jax.model import config as model_config
 from skillplug_jax.model.config import ModelConfig
+from skillplug_jax.model.freeze import GROUPS
 
 
 LR_SCHEDULES = ("constant", "cosine")
+# envs.BACKENDS, copied: envs is slow to import and a config must be cheap to build
+# (tests/test_config_validation.py keeps the two equal).
+BACKENDS = ("auto", "mujoco", "mjx-warp")
+
+
+_count = validation.count
+_RULES = dict(
+    preset=validation.text(), taskset=validation.text(), demos=_count(1), data_seed=_count(0),
+    data_dir=validation.text(), backend=validation.one_of(BACKENDS), batch_size=_count(1),
+    lr=validation.number(above=0), weight_decay=validation.number(0),
+    grad_clip=validation.number(note=" (<= 0: no clipping)"), warmup_steps=_count(0),
+    lr_schedule=validation.one_of(LR_SCHEDULES), epochs=validation.number(above=0),
+    max_steps=_count(0, " (0: train `epochs`)"), seed=_count(0),
+    trainable=validation.each(validation.one_of(GROUPS), distinct=True, note=" (empty: all)"),
+    log_every=_count(1), ckpt_every=_count(1), keep_checkpoints=_count(1))
 
 
 @dataclasses.dataclass(frozen=True)
@@ -54,8 +71,7 @@ class TrainConfig:
   keep_checkpoints: int = 2
 
   def __post_init__(self):
-    if self.lr_schedule not in LR_SCHEDULES:
-      raise ValueError(f"lr_schedule must be one of {LR_SCHEDULES}, got {self.lr_schedule!r}")
+    validation.check(self, "", _RULES)
 
   @property
   def run_dir(self) -> Path:
@@ -87,12 +103,18 @@ def _parse(value: str, typ):
 
 
 def override(cfg, assignments: typing.Iterable[str]):
-  """Apply `key=value` (dotted for nested dataclasses: model.hidden=128)."""
-  for item in assignments:
-    if "=" not in item:
-      raise ValueError(f"override {item!r} is not key=value")
-    key, value = item.split("=", 1)
-    cfg = _set(cfg, key.strip().split("."), value.strip(), key)
+  """Apply `key=value` (dotted for nested dataclasses: model.hidden=128).
+
+  The result is checked once all are applied (fields that constrain each other, such as
+  model.hidden and model.heads, may be set in any order); a bad value is named by its key.
+  """
+  with validation.deferred():
+    for item in assignments:
+      if "=" not in item:
+        raise ValueError(f"override {item!r} is not key=value")
+      key, value = item.split("=", 1)
+      cfg = _set(cfg, key.strip().split("."), value.strip(), key)
+  validation.check_all(cfg)
   return cfg
 
 

@@ -7,11 +7,13 @@ spans every process's devices). A step's randomness is fold_in(seed, step)
 and the loader's batch is a function of (seed, step), so a run resumed from
 its last checkpoint continues exactly as if it had not been stopped. A damaged
 last checkpoint is set aside, with a warning, and the run resumes from the
-newest intact one.
+newest intact one. A run directory has one writer: a second process training
+into it stops at once, naming the first (`dir_lock`).
 """
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import math
 import sys
@@ -27,7 +29,7 @@ from jax.sharding import Mesh, NamedSharding, PartitionSpec
 from tqdm import tqdm
 
 import envs
-from skillplug_jax import losses
+from skillplug_jax import dir_lock, losses
 from skillplug_jax.data import demos as demo_data
 from skillplug_jax.data import loader as data_loader
 from skillplug_jax.experiment import RunRecord
@@ -149,6 +151,19 @@ def train(cfg: TrainConfig, progress: bool = True, stop_after: int | None = None
   (tests use it to check that resuming is exact).
   """
   cfg = dataclasses.replace(cfg, backend=envs.resolve_backend(cfg.backend))
+  with writer_lock(cfg.run_dir):
+    return _train(cfg, progress, stop_after, record)
+
+
+def writer_lock(run_dir: Path):
+  """The run directory's lock (`dir_lock`): a second process training into it stops at once. Several
+  hosts (jax.distributed) write one run together: the first process holds it for them."""
+  if jax.process_index() != 0:
+    return contextlib.nullcontext()
+  return dir_lock.DirLock(run_dir, what=f"run directory {run_dir}")
+
+
+def _train(cfg: TrainConfig, progress: bool, stop_after: int | None, record: RunRecord | None) -> Path:
   run_dir = cfg.run_dir
   data = load_data(cfg, progress=progress)
   if cfg.init_from:  # the frozen encoder expects the inputs normalised as in its own training
