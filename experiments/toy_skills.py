@@ -19,10 +19,13 @@ Per variant and training seed:
    gripper; else nothing) says whether each skill alone is one primitive;
    plus uniform routing (1/K each), which a router that learned nothing
    would give;
-4. few-shot: from the multi-task parameters, one fine-tune per unseen task
-   (10 demos) of the paper's groups (ACT: action_head; ACT+SkillPlug:
+4. zero-shot (the multi-task parameters on the unseen tasks) and
+   few-shot: from those parameters, one fine-tune per unseen task (10
+   demos) of the paper's groups (ACT: action_head; ACT+SkillPlug:
    action_head + router; with model.plug_site=decoder: action_proj, and
-   action_proj + router), then its closed-loop evaluation.
+   action_proj + router), then its closed-loop evaluation. Besides success,
+   the mean fraction of each task's stages done ("stages %"), which ranks
+   arms where success is rare.
 
 Routing statistics (closed-loop queries of step 2, while the task ran):
   routing_entropy_per_query  mean_q H(r_q) / log K     (1: every query uniform)
@@ -30,7 +33,9 @@ Routing statistics (closed-loop queries of step 2, while the task ran):
   effective_skills           exp H(mean_q r_q)         (1..K)
   nmi                        normalised mutual information (arithmetic mean of
                              the entropies, sklearn's default) between argmax_k r_q
-                             and the primitive label of that step
+                             and the primitive label of that step (nmi_task, nmi_stage,
+                             nmi_quadrant: the same against the task, the stage index and
+                             the robot's quadrant of the table, what else routing could follow)
 Variants are override strings in the `--set` syntax (train/config.py
 `override`) on the toy's TrainConfig; one naming an unknown setting stops the
 run with an error naming the variant and the setting.
@@ -72,11 +77,13 @@ class ToyVariant:
   name: str
   overrides: tuple[str, ...] = ()
   label: str = ""
+  fewshot: tuple[str, ...] = ()  # the groups few-shot retrains, when not the paper's (fewshot_groups)
 
 
 # Every arm the screen knows; --variants picks some (default: DEFAULT_VARIANTS). Names shared with
 # experiments/configs/skill_library.py (the `cpu`-preset screen) mean the same overrides there.
 USAGE = ("loss.usage=0.5",)
+CUE = f"model.router_cue_slots={toy.OBJECT_STATE_DIM // toy.SLOT - 3}"  # the slots after the 3 landmarks
 VARIANTS = (
     ToyVariant("act", ("model.policy=act",), "ACT"),
     ToyVariant("skillplug_paper", (), "ACT+SkillPlug (paper)"),
@@ -110,6 +117,20 @@ VARIANTS = (
     ToyVariant("tokens_usage", ("model.interactor=skill_tokens", "model.skill_offset=none",
                                 "model.router_input=no_style") + USAGE, "skill tokens, no z, no style + usage 0.5 (ours)"),
     ToyVariant("per_object_usage", ("model.object_tokens=per_object",) + USAGE, "token per object + usage 0.5 (ours)"),
+    # the task cue (program and stage) read by the router alone: the decoder learns what to do
+    # next only through the routing (ours)
+    ToyVariant("cue", (CUE,), "cue to the router only (ours)"),
+    ToyVariant("cue_top1", (CUE, "model.routing=top1"), "cue to the router only, top-1 (ours)"),
+    ToyVariant("cue_top1_router", (CUE, "model.routing=top1"), "cue to the router only, top-1; few-shot: router (ours)",
+               fewshot=("router",)),
+    # ... with one token per landmark, so that a skill's query offset can pick which one to reach
+    ToyVariant("cue_per_object", (CUE, "model.object_tokens=per_object"), "cue to the router only, token per object (ours)"),
+    ToyVariant("cue_per_object_top1", (CUE, "model.object_tokens=per_object", "model.routing=top1"),
+               "cue to the router only, token per object, top-1 (ours)"),
+    ToyVariant("cue_per_object_sq", (CUE, "model.object_tokens=per_object", "loss.sd_kind=squared"),
+               "cue to the router only, token per object, squared SD (ours)"),
+    ToyVariant("cue_tokens", (CUE, "model.object_tokens=per_object", "model.interactor=skill_tokens",
+                              "model.skill_offset=none"), "cue to the router only, token per object, skill tokens (ours)"),
 )
 DEFAULT_VARIANTS = ("act", "skillplug_paper")
 
@@ -345,7 +366,10 @@ def _evaluator(model: ModelConfig, env: toy.ToySkillsConfig, query: str, fixed: 
 
     final, traj = toy.rollout(env, controller, jnp.zeros((b, c, c, a), jnp.float32), state)
     toggled = (traj.obs["joint_pos"][..., 2] != 0).any(1) | (final.grip != 0)
-    out = dict(success=final.success, label=traj.label, active=traj.active, final_pos=final.pos,
+    xy = traj.obs["joint_pos"][..., :2]
+    out = dict(success=final.success, stage=final.stage, label=traj.label,
+               step_stage=traj.obs["object_state"][..., toy.STAGE_BITS].argmax(-1),
+               quadrant=(xy[..., 0] > 0).astype(jnp.int32) + 2 * (xy[..., 1] > 0), active=traj.active, final_pos=final.pos,
                landmarks=final.landmarks, toggled=toggled)
     if "routing" in traj.info:
       out["routing"] = traj.info["routing"]
@@ -369,6 +393,13 @@ def eval_tasks(exp: ToyExperiment, model: ModelConfig, params, tasks: Sequence[i
   out = rollouts(model, exp.env, exp.query, params, jax.random.PRNGKey(exp.eval_seed), task_ids, routing)
   rates = {toy.task_name(t): float(out["success"][task_ids == t].mean()) for t in tasks}
   return rates, dict(out, task=task_ids)
+
+
+def stage_progress(out: dict) -> dict:
+  """Per task, the mean fraction of its stages done by the time limit: a finer score than
+  success where success is rare (an unseen task whose first stage is done scores 1/2 or 1/3)."""
+  done = np.asarray(out["stage"]) / toy.TASK_LENGTH[out["task"]]
+  return {toy.task_name(t): float(done[out["task"] == t].mean()) for t in np.unique(out["task"])}
 
 
 PROBE_CLASSES = ("reach_A", "reach_B", "reach_C", "toggle", "none")
@@ -410,6 +441,11 @@ def routing_report(out: dict, k: int) -> dict:
   r, lab = out["routing"][keep], out["label"][keep]
   rep = routing_stats(r)
   rep["nmi"] = nmi(r.argmax(-1), lab)
+  # what else the choice could follow: the task, the stage index, the robot's quadrant of the table
+  task = np.broadcast_to(out["task"][:, None], keep.shape)[keep]
+  rep["nmi_task"] = nmi(r.argmax(-1), task)
+  rep["nmi_stage"] = nmi(r.argmax(-1), out["step_stage"][keep])
+  rep["nmi_quadrant"] = nmi(r.argmax(-1), out["quadrant"][keep])
   rep["weights_by_primitive"] = {toy.PRIMITIVES[p]: r[lab == p].mean(0).tolist() for p in range(len(toy.PRIMITIVES))
                                  if (lab == p).any()}
   rep["queries"] = int(keep.sum())
@@ -425,14 +461,17 @@ def variant_config(exp: ToyExperiment, variant: ToyVariant) -> TrainConfig:
     raise ValueError(f"toy variant {variant.name!r}: {e}") from e
 
 
-def fewshot_groups(exp: ToyExperiment, cfg: TrainConfig) -> tuple[str, ...]:
+def fewshot_groups(exp: ToyExperiment, cfg: TrainConfig, variant: ToyVariant | None = None) -> tuple[str, ...]:
+  if variant is not None and variant.fewshot:
+    return variant.fewshot
   decoder = cfg.model.plug_site == "decoder"
   if cfg.model.is_skillplug:
     return exp.fewshot_skillplug_decoder if decoder else exp.fewshot_skillplug
   return exp.fewshot_act_decoder if decoder else exp.fewshot_act
 
 
-def run_seed(exp: ToyExperiment, cfg: TrainConfig, seed: int, data: dict, progress: bool) -> dict:
+def run_seed(exp: ToyExperiment, cfg: TrainConfig, seed: int, data: dict, progress: bool,
+             variant: ToyVariant | None = None) -> dict:
   """Train one seed of one variant, then evaluate, probe and adapt it."""
   model = cfg.model
   init_key, step_key = jax.random.split(jax.random.PRNGKey(seed))
@@ -442,20 +481,26 @@ def run_seed(exp: ToyExperiment, cfg: TrainConfig, seed: int, data: dict, progre
   t1 = time.perf_counter()
   rates, out = eval_tasks(exp, model, params, toy.SEEN, exp.eval_trials)
   res = dict(seed=seed, train_losses=losses, multitask=rates, multitask_mean=float(np.mean(list(rates.values()))))
+  zero_shot, zero_out = eval_tasks(exp, model, params, toy.UNSEEN, exp.eval_trials)
+  res.update(zero_shot=zero_shot, zero_shot_progress=stage_progress(zero_out))
   if model.is_skillplug:
     res["routing"] = routing_report(out, model.num_skills)
     res["fixed_skill_probe"] = fixed_skill_probe(exp, model, params)
   t2 = time.perf_counter()
 
-  groups = fewshot_groups(exp, cfg)
+  groups = fewshot_groups(exp, cfg, variant)
   fs_cfg = dataclasses.replace(cfg, trainable=tuple(sorted(groups)), max_steps=exp.fewshot_steps,
                                warmup_steps=min(cfg.warmup_steps, exp.fewshot_steps // 10))
-  fs = {}
+  fs, fs_progress = {}, {}
   for task in toy.UNSEEN:
     adapted, _ = train(fs_cfg, params, data["unseen"][task], jax.random.fold_in(step_key, 1000 + task),
                        exp.steps_per_call, desc=f"few-shot {toy.task_name(task)}", progress=progress)
-    fs.update(eval_tasks(exp, model, adapted, (task,), exp.eval_trials)[0])
-  res.update(fewshot=fs, fewshot_mean=float(np.mean(list(fs.values()))), fewshot_trainable=list(fs_cfg.trainable))
+    rates_fs, out_fs = eval_tasks(exp, model, adapted, (task,), exp.eval_trials)
+    fs.update(rates_fs)
+    fs_progress.update(stage_progress(out_fs))
+  res.update(fewshot=fs, fewshot_mean=float(np.mean(list(fs.values()))), fewshot_progress=fs_progress,
+             fewshot_progress_mean=float(np.mean(list(fs_progress.values()))),
+             fewshot_trainable=list(fs_cfg.trainable))
   t3 = time.perf_counter()
   res["time_s"] = dict(train=t1 - t0, eval_probe=t2 - t1, fewshot=t3 - t2)
   return res
@@ -465,13 +510,17 @@ def aggregate(seeds: list[dict]) -> dict:
   """Mean +- SE over seeds of every number the table reads (None where it has no meaning)."""
   agg = {"multitask_success": dict(mean_se([s["multitask_mean"] for s in seeds]),
                                    per_task={t: mean_se([s["multitask"][t] for s in seeds]) for t in seeds[0]["multitask"]})}
+  agg["zero_shot_progress"] = (mean_se([np.mean(list(s["zero_shot_progress"].values())) for s in seeds])
+                               if "zero_shot_progress" in seeds[0] else None)
   if "fewshot" in seeds[0]:
     agg["fewshot_success"] = dict(mean_se([s["fewshot_mean"] for s in seeds]),
                                   per_task={t: mean_se([s["fewshot"][t] for s in seeds]) for t in seeds[0]["fewshot"]})
+    agg["fewshot_progress"] = mean_se([s["fewshot_progress_mean"] for s in seeds])
   else:
-    agg["fewshot_success"] = None
-  for key in ("routing_entropy_per_query", "usage_entropy", "effective_skills", "nmi"):
-    agg[key] = mean_se([s["routing"][key] for s in seeds]) if "routing" in seeds[0] else None
+    agg["fewshot_success"] = agg["fewshot_progress"] = None
+  for key in ("routing_entropy_per_query", "usage_entropy", "effective_skills", "nmi", "nmi_task", "nmi_stage",
+              "nmi_quadrant"):
+    agg[key] = mean_se([s["routing"][key] for s in seeds]) if "routing" in seeds[0] and key in seeds[0]["routing"] else None
   if "fixed_skill_probe" in seeds[0]:
     probes = [s["fixed_skill_probe"] for s in seeds]
     agg["fixed_skill_probe"] = dict(
@@ -495,15 +544,22 @@ def _fmt(x, pct=False, digits=2) -> str:
 
 
 def markdown(summary: dict) -> str:
-  lines = ["| variant | multi-task % | few-shot % | H(r)/log K | H(mean r)/log K | eff. skills | NMI | "
-           "pure skills | uniform-routing % |", "|---" * 9 + "|"]
+  lines = ["| variant | multi-task % | zero-shot stages % | few-shot % | few-shot stages % | H(r)/log K | H(mean r)/log K | eff. skills | NMI | "
+           "pure skills | uniform-routing % |", "|---" * 11 + "|"]
   for name, v in summary["variants"].items():
     probe = v["fixed_skill_probe"]
     lines.append("| " + " | ".join([
-        v["label"] or name, _fmt(v["multitask_success"], True), _fmt(v["fewshot_success"], True),
+        v["label"] or name, _fmt(v["multitask_success"], True), _fmt(v.get("zero_shot_progress"), True),
+        _fmt(v["fewshot_success"], True), _fmt(v.get("fewshot_progress"), True),
         _fmt(v["routing_entropy_per_query"]), _fmt(v["usage_entropy"]), _fmt(v["effective_skills"]),
         _fmt(v["nmi"]), _fmt(probe and probe["distinct_pure_primitives"], digits=1),
         _fmt(probe and probe["uniform_success"], True)]) + " |")
+  follows = ["", "What the routing's choice (argmax) follows, NMI against each label:", "",
+             "| variant | primitive | task | stage index | robot's quadrant |", "|---" * 5 + "|"]
+  for name, v in summary["variants"].items():
+    if v.get("nmi"):
+      follows.append(f"| {name} | " + " | ".join(_fmt(v.get(k)) for k in ("nmi", "nmi_task", "nmi_stage", "nmi_quadrant"))
+                     + " |")
   tasks = [toy.task_name(t) for t in toy.SEEN + toy.UNSEEN]
   per_task = ["", "| variant | " + " | ".join(tasks) + " |", "|---" * (len(tasks) + 1) + "|"]
   for name, v in summary["variants"].items():
@@ -519,7 +575,7 @@ def markdown(summary: dict) -> str:
   head = [f"Toy skills (envs/toy_skills.py): seen {', '.join(tasks[:len(toy.SEEN)])}; unseen "
           f"{', '.join(tasks[len(toy.SEEN):])} (T = toggle). Mean ± SE over seeds {summary['seeds']}; "
           f"routing over closed-loop queries on the seen tasks; NMI: argmax routing vs the primitive label.", ""]
-  return "\n".join(head + lines + per_task + probes) + "\n"
+  return "\n".join(head + lines + follows + per_task + probes) + "\n"
 
 
 # --------------------------------------------------------------------------- driver
@@ -568,6 +624,7 @@ def finished_variants(exp: ToyExperiment, out: Path) -> dict:
   known = {v.name: v for v in VARIANTS}
   return {name: entry for name, entry in old.get("variants", {}).items()
           if name in known and entry.get("overrides") == list(known[name].overrides)
+          and entry.get("fewshot_groups", []) == list(known[name].fewshot)
           and entry.get("seeds") == list(exp.seeds) and entry.get("status") == "ok"}
 
 
@@ -588,9 +645,10 @@ def run(exp: ToyExperiment, out: Path, progress: bool = True) -> dict:
       if progress:
         print(f"{variant.name}: already in {out / 'summary.json'} with these settings; kept", file=sys.stderr)
       continue
-    entry = dict(label=variant.label or variant.name, overrides=list(variant.overrides))
+    entry = dict(label=variant.label or variant.name, overrides=list(variant.overrides),
+                 fewshot_groups=list(variant.fewshot))
     cfg = variant_config(exp, variant)
-    seeds = [run_seed(exp, cfg, seed, data, progress) for seed in exp.seeds]
+    seeds = [run_seed(exp, cfg, seed, data, progress, variant) for seed in exp.seeds]
     entry.update(status="ok", policy=cfg.model.policy, seeds=list(exp.seeds), **aggregate(seeds), per_seed=seeds)
     summary["variants"][variant.name] = entry
     summary["time_s"] = time.perf_counter() - t_start
@@ -603,6 +661,43 @@ def run(exp: ToyExperiment, out: Path, progress: bool = True) -> dict:
   table = markdown(summary)
   write_text_atomic(out / "summary.md", table + f"\nTotal {summary['time_s']:.0f} s on {summary['cpu']}.\n")
   return summary
+
+
+def _differences(a, b, prefix="") -> list[str]:
+  """Dotted keys whose values differ between two settings dicts. A key one side lacks is a field
+  added since that run, whose default is what the code did before it (the switches' rule:
+  docs/training.md), so it is not a difference."""
+  if isinstance(a, dict) and isinstance(b, dict):
+    return [d for k in sorted(a.keys() & b.keys()) for d in _differences(a[k], b[k], f"{prefix}{k}.")]
+  return [] if a == b else [prefix.rstrip(".")]
+
+
+def combine(sources: Sequence[Path], out: Path) -> dict:
+  """One summary of several runs' summary.json (a variant from the first run holding it; listed
+  in VARIANTS' order), written like a run's; runs with different settings are refused."""
+  merged = None
+  for src in sources:
+    path = Path(src) / "summary.json"
+    if not path.exists():
+      raise FileNotFoundError(f"{path} not found")
+    summary = json.loads(path.read_text())
+    settings = {k: v for k, v in summary["config"].items() if k not in ("variants", "seeds")}
+    if merged is None:
+      merged, first_settings = dict(summary, variants={}, sources=[], time_s=0.0), settings
+    elif _differences(settings, first_settings):
+      raise ValueError(f"{path} was run with other settings than {sources[0]} "
+                       f"({', '.join(_differences(settings, first_settings))}); not combined")
+    merged["sources"].append(str(src))
+    merged["time_s"] += summary.get("time_s", 0.0)
+    for name, entry in summary["variants"].items():
+      merged["variants"].setdefault(name, entry)
+  order = {v.name: i for i, v in enumerate(VARIANTS)}
+  merged["variants"] = dict(sorted(merged["variants"].items(), key=lambda kv: order.get(kv[0], len(order))))
+  merged["seeds"] = sorted({s for v in merged["variants"].values() for s in v["seeds"]})
+  write_json_atomic(out / "summary.json", merged)
+  write_text_atomic(out / "summary.md", markdown(merged) + f"\nCombined from {', '.join(merged['sources'])} "
+                    f"({merged['time_s']:.0f} s of runs on {merged['cpu']}).\n")
+  return merged
 
 
 def parse_args(argv=None):
@@ -619,11 +714,18 @@ def parse_args(argv=None):
                  help="a ToyExperiment field (fewshot_steps=200, eval_trials=20) or a TrainConfig key "
                       "for every variant (model.num_skills=6, loss.sd=0.1); repeatable")
   p.add_argument("--no-progress", action="store_true")
+  p.add_argument("--combine", default="",
+                 help="comma list of finished runs' folders: write their variants as one summary to --out "
+                      "(no training)")
   return p.parse_args(argv)
 
 
 def main(argv=None) -> int:
   args = parse_args(argv)
+  if args.combine:
+    summary = combine([Path(d) for d in args.combine.split(",") if d], Path(args.out))
+    print(markdown(summary))
+    return 0
   exp = apply_settings(ToyExperiment(), args.set)
   if args.variants:
     exp = dataclasses.replace(exp, variants=tuple(v for v in args.variants.split(",") if v))

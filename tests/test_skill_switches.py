@@ -249,6 +249,36 @@ def test_router_input_zero_style_routes_as_at_inference():
     assert np.allclose(train_routing, routing, rtol=1e-5, atol=1e-6) == same, mode
 
 
+def test_router_cue_reaches_the_router_alone():
+  """router_cue_slots=2: the last 2 object slots move the routing (training and inference
+  paths) but, with the routing fixed, not the actions; without the switch they move both."""
+  batch = make_batch(small())
+  moved = dict(batch, object_state=batch["object_state"].at[:, -14:].add(3.0))
+  for n, cue_moves_actions in ((0, True), (2, False)):
+    cfg = small(router_cue_slots=n)
+    variables = host_params(cfg)
+    fixed = jnp.full((cfg.num_skills,), 1.0 / cfg.num_skills)
+    (a0, r0), (a1, r1) = (_predict_fixed_fn(cfg)(variables, b, fixed) for b in (batch, moved))
+    assert not np.allclose(r0, r1, atol=1e-5), n  # the router reads the cue either way
+    assert (not np.allclose(a0, a1, atol=1e-5)) == cue_moves_actions, n
+    t0, t1 = (forward(cfg, variables, b, train=False)["router_probs"] for b in (batch, moved))
+    assert not np.allclose(t0, t1, atol=1e-5), n
+  with pytest.raises(ValueError, match="router_cue_slots"):
+    ModelConfig(router_cue_slots=-1)
+
+
+@functools.lru_cache(maxsize=None)
+def _predict_fixed_fn(cfg: ModelConfig):
+  """(actions with the routing fixed, the router's own routing)."""
+  model = Policy(cfg)
+
+  def fn(v, b, routing):
+    actions, _ = model.apply(v, b, routing, method=Policy.predict)
+    _, own = model.apply(v, b, method=Policy.predict)
+    return actions, own
+  return jax.jit(fn, compiler_options=FAST_COMPILE)
+
+
 def test_skill_tokens_let_a_skill_write_content():
   """Scene tokens of equal content: attention over them returns that content whatever the
   query, so query offsets cannot tell skills apart; a skill token among the keys and values can."""

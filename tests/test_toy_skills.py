@@ -193,3 +193,18 @@ def test_driver_writes_the_summary(tmp_path):
   assert json.loads((tmp_path / "summary.json").read_text())["variants"]["skillplug_paper"]["marker"] == 1
   assert driver.main(argv + ["--set", "eval_seed=7"]) == 0
   assert "marker" not in json.loads((tmp_path / "summary.json").read_text())["variants"]["skillplug_paper"]
+
+  # --combine: two runs' variants in one summary; runs with other settings are refused
+  other = tmp_path / "other"
+  other.mkdir()
+  summary = json.loads((tmp_path / "summary.json").read_text())
+  summary["variants"] = {"act": dict(summary["variants"]["skillplug_paper"], label="renamed")}
+  (other / "summary.json").write_text(json.dumps(summary))
+  assert driver.main(["--combine", f"{tmp_path},{other}", "--out", str(tmp_path / "both")]) == 0
+  both = json.loads((tmp_path / "both" / "summary.json").read_text())
+  assert list(both["variants"]) == ["act", "skillplug_paper"] and both["sources"] == [str(tmp_path), str(other)]
+  assert "renamed" in (tmp_path / "both" / "summary.md").read_text()
+  summary["config"]["eval_seed"] = 1
+  (other / "summary.json").write_text(json.dumps(summary))
+  with pytest.raises(ValueError, match="eval_seed"):
+    driver.main(["--combine", f"{tmp_path},{other}", "--out", str(tmp_path / "both2")])

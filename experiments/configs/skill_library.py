@@ -9,6 +9,8 @@ ACT and the paper's configuration, seeds 0-2). The toy problem
 run here. Finalists then run seeds 0-2 (`--set seeds=0,1,2`).
 
 Readings within the paper's text:
+  per_object  the object state as one token per object, ACT and ACT+SkillPlug
+              (act_per_object: its ACT arm alone)
   tokens      the skill as a key/value token (interactor=skill_tokens), s_k without the
               posterior's sampled offset (skill_offset=none), the router blind to the
               training-only style token (router_input=no_style)
@@ -22,6 +24,10 @@ Remedies of ours (not the paper's):
   posterior   fusion trained on the posterior's skill assignment q(k | tau) (Gumbel,
               straight-through), the router distilled to it
   top1        hard top-1 routing (straight-through) with the usage term
+  per_object_usage  one token per object (a reading; its own ACT arm is variant
+              per_object) with the usage term: on the toy problem (seed 0) the one
+              skill-library variant that routed decisively over ~4 skills and kept
+              its ACT arm's multi-task success within a few points
 """
 
 import dataclasses
@@ -30,6 +36,7 @@ from pathlib import Path
 from skillplug_jax.experiment import Experiment, Variant, load
 
 USAGE = ("train.loss.usage=0.5",)
+PER_OBJECT = "train.model.object_tokens=per_object"
 
 
 def get_config() -> Experiment:
@@ -47,4 +54,7 @@ def get_config() -> Experiment:
                   "usage 0.5 + squared SD (ours)"),
           Variant("posterior", ("train.model.fusion_source=posterior",), "fusion on q(k|tau) (ours)"),
           Variant("top1", USAGE + ("train.model.routing=top1",), "top-1 + usage (ours)"),
+          Variant("per_object", (PER_OBJECT, "policies=act,skillplug"), "one token per object"),
+          Variant("act_per_object", (PER_OBJECT, "policies=act"), "ACT, one token per object"),
+          Variant("per_object_usage", (PER_OBJECT,) + USAGE, "one token per object + usage 0.5 (ours)"),
       ))

@@ -35,7 +35,7 @@ import flax.linen as nn
 import jax
 import jax.numpy as jnp
 
-from skillplug_jax.model.act import ActionHead, ActionProjection, CVAEEncoder, Encoder
+from skillplug_jax.model.act import OBJECT_SLOT_DIM, ActionHead, ActionProjection, CVAEEncoder, Encoder
 from skillplug_jax.model.config import ModelConfig
 from skillplug_jax.model.interactor import INTERACTORS
 from skillplug_jax.model.posterior import TrajectorySkillPosterior, reparameterise
@@ -88,6 +88,7 @@ class Policy(nn.Module):
     actions, mask = batch["actions"], batch["action_mask"]
     cvae_mu, cvae_logvar = self.cvae(batch["joint_pos"], actions, mask, deterministic)
     style_z = reparameterise(self.make_rng("sample"), cvae_mu, cvae_logvar) if train else cvae_mu
+    batch, cue = self._split_cue(batch)
     h, pos = self.encoder(batch, style_z, deterministic)
     out = dict(cvae_mu=cvae_mu, cvae_logvar=cvae_logvar)
     if not cfg.is_skillplug:
@@ -101,7 +102,7 @@ class Policy(nn.Module):
       codes = codes + post["offset"].astype(skills.dtype)
     codes = jnp.broadcast_to(codes, (h.shape[0],) + skills.shape)
     u = self.interactor(x, codes, deterministic, x_pos)
-    probs, logits = self.router(self._router_tokens(batch, h, deterministic), with_logits=True)
+    probs, logits = self.router(self._router_tokens(batch, h, deterministic), with_logits=True, cue=cue)
     weights = top1(probs) if cfg.routing == "top1" else probs
     if cfg.fusion_source == "posterior":
       q = post["traj_logits"].astype(jnp.float32)
@@ -136,12 +137,13 @@ class Policy(nn.Module):
     the router's choice is hard, as the fusion was in training."""
     cfg = self.config
     batch = obs["joint_pos"].shape[0]
+    obs, cue = self._split_cue(obs)
     h, pos = self.encode(obs)
     x, x_pos = self._plug_input(h, pos, True)
     skills = self.skills()
     u = self.interactor(x, jnp.broadcast_to(skills, (batch,) + skills.shape), True, x_pos)
     if routing is None:
-      routing = self.router(self._router_tokens(None, h, True))
+      routing = self.router(self._router_tokens(None, h, True), cue=cue)
       if cfg.routing == "top1" or cfg.fusion_source == "posterior":
         routing = _one_hot_argmax(routing)
     routing = jnp.broadcast_to(jnp.asarray(routing, jnp.float32), (batch, cfg.num_skills))
@@ -173,6 +175,20 @@ class Policy(nn.Module):
     if self.config.plug_site == "decoder":
       return self.action_proj(fused)
     return self.action_head(fused, pos, deterministic)
+
+  def _split_cue(self, obs):
+    """(obs with the router's cue zeroed, the cue [B, slots * 7]) under
+    `router_cue_slots`; (obs, None) without one."""
+    n = self.config.router_cue_slots if self.config.is_skillplug else 0
+    if not n:
+      return obs, None
+    state = obs["object_state"]
+    width = n * OBJECT_SLOT_DIM
+    if state.shape[-1] < width:
+      raise ValueError(f"model.router_cue_slots={n} needs an object state of at least {width} numbers, "
+                       f"got {state.shape[-1]}")
+    hidden = state.at[..., state.shape[-1] - width:].set(0.0)
+    return dict(obs, object_state=hidden), state[..., state.shape[-1] - width:]
 
   def _router_tokens(self, batch, h, deterministic):
     """The tokens the router pools (`ModelConfig.router_input`); the style token is h[:, 0].

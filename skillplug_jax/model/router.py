@@ -16,7 +16,8 @@ class Router(nn.Module):
   logits: below 1 the same logits give sharper weights (a remedy tried
   against routing that stays uniform; 1 is the paper's plain softmax).
   with_logits: return (probs, the logits the softmax reads), for the losses
-  that read logits (ST-MoE's router z-loss).
+  that read logits (ST-MoE's router z-loss). cue [B, C]: what only the router
+  reads (`ModelConfig.router_cue_slots`), added to the pooled tokens.
   """
   num_skills: int
   hidden: int
@@ -24,8 +25,10 @@ class Router(nn.Module):
   temperature: float = 1.0
 
   @nn.compact
-  def __call__(self, h: jnp.ndarray, with_logits: bool = False):
+  def __call__(self, h: jnp.ndarray, with_logits: bool = False, cue=None):
     x = h.astype(self.dtype).mean(axis=1)
+    if cue is not None:
+      x = x + nn.Dense(x.shape[-1], dtype=self.dtype, name="cue")(cue.astype(self.dtype))
     x = nn.relu(nn.Dense(self.hidden, dtype=self.dtype, name="fc1")(x))
     logits = nn.Dense(self.num_skills, dtype=jnp.float32, kernel_init=nn.initializers.zeros,
                       name="fc2")(x)
