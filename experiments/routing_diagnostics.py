@@ -23,7 +23,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import math
 import sys
 from collections import defaultdict
 from pathlib import Path
@@ -41,18 +40,6 @@ def episode_queries(routing: np.ndarray) -> list[np.ndarray]:
   """The valid queries [Q_i, K] of each trial (rows before the NaN padding)."""
   r = np.asarray(routing, np.float64)
   return [ep[np.isfinite(ep).all(-1)] for ep in r]
-
-
-def _mi_norm(joint_weights: np.ndarray) -> float:
-  """Normalised I(X; S) from mean routing per value of X [X, K] and each value's share [X]."""
-  means, share = joint_weights
-  share = share / share.sum()
-  mean = share @ means
-  h = lambda p: float(diagnostics.entropy(jnp.asarray(p)))  # noqa: E731
-  mi = max(h(mean) - sum(w * h(m) for w, m in zip(share, means)), 0.0)
-  present = int((share > 0).sum())
-  denom = min(math.log(means.shape[-1]), math.log(max(present, 1)))
-  return mi / denom if present > 1 and denom > 0 else 0.0
 
 
 def task_stats(routing: np.ndarray) -> dict:
@@ -73,8 +60,15 @@ def task_stats(routing: np.ndarray) -> dict:
   phase_mean = phase_sum / np.maximum(phase_count, 1)[:, None]
   return dict(queries=int(len(queries)), mean_routing=np.asarray(stats["mean_routing"]).tolist(),
               query_entropy=float(stats["query_entropy"]), usage_entropy=float(stats["usage_entropy"]),
-              phase_skill_mi_norm=_mi_norm((phase_mean, phase_count)),
+              phase_skill_mi_norm=_phase_mi_norm(phase_mean, phase_count),
               phase_routing=phase_mean.tolist(), within_episode_tv=float(np.mean(tv)))
+
+
+def _phase_mi_norm(phase_mean: np.ndarray, phase_count: np.ndarray) -> float:
+  """Normalised I(phase; skill) from the mean routing of each phase and its number of queries:
+  `diagnostics.combine_tasks` with the phases as the 'tasks'."""
+  parts = [dict(queries=n, mean_routing=m, query_entropy=0.0) for m, n in zip(phase_mean, phase_count) if n > 0]
+  return diagnostics.combine_tasks(parts)["task_skill_mi_norm"]
 
 
 def run_diagnostics(routing_dir: Path) -> dict:

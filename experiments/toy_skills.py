@@ -609,6 +609,15 @@ def _settings(exp: ToyExperiment) -> dict:
   return cfg
 
 
+def _differences(a, b, prefix="") -> list[str]:
+  """Dotted keys whose values differ between two settings dicts. A key one side lacks is a field
+  added since that run, whose default is what the code did before it (the switches' rule:
+  docs/training.md), so it is not a difference."""
+  if isinstance(a, dict) and isinstance(b, dict):
+    return [d for k in sorted(a.keys() & b.keys()) for d in _differences(a[k], b[k], f"{prefix}{k}.")]
+  return [] if a == b else [prefix.rstrip(".")]
+
+
 def finished_variants(exp: ToyExperiment, out: Path) -> dict:
   """Variants OUT/summary.json already holds with these settings, overrides and seeds: a rerun of
   the same command resumes after the last finished variant instead of starting again."""
@@ -619,7 +628,7 @@ def finished_variants(exp: ToyExperiment, out: Path) -> dict:
     old = json.loads(path.read_text())
   except (OSError, json.JSONDecodeError) as e:
     raise ValueError(f"{path} exists but cannot be read ({e}); move it away to start afresh") from e
-  if _settings(exp) != {k: v for k, v in old.get("config", {}).items() if k not in ("variants", "seeds")}:
+  if _differences(_settings(exp), {k: v for k, v in old.get("config", {}).items() if k not in ("variants", "seeds")}):
     return {}
   known = {v.name: v for v in VARIANTS}
   return {name: entry for name, entry in old.get("variants", {}).items()
@@ -661,15 +670,6 @@ def run(exp: ToyExperiment, out: Path, progress: bool = True) -> dict:
   table = markdown(summary)
   write_text_atomic(out / "summary.md", table + f"\nTotal {summary['time_s']:.0f} s on {summary['cpu']}.\n")
   return summary
-
-
-def _differences(a, b, prefix="") -> list[str]:
-  """Dotted keys whose values differ between two settings dicts. A key one side lacks is a field
-  added since that run, whose default is what the code did before it (the switches' rule:
-  docs/training.md), so it is not a difference."""
-  if isinstance(a, dict) and isinstance(b, dict):
-    return [d for k in sorted(a.keys() & b.keys()) for d in _differences(a[k], b[k], f"{prefix}{k}.")]
-  return [] if a == b else [prefix.rstrip(".")]
 
 
 def combine(sources: Sequence[Path], out: Path) -> dict:
