@@ -29,6 +29,7 @@ def write_synthetic(root: Path, name: str, spec: rlds.DatasetSpec, records: list
   version_dir = rlds.write_dataset(root / f".{name}.building", spec, lambda: records, {"test": True})
   if stats:
     normalization.write_stats(version_dir, normalization.compute_stats(r.episode for r in records))
+  rlds.write_checksums(version_dir)
   final = root / name
   os.replace(version_dir, final)
   return final

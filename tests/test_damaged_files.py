@@ -1,5 +1,6 @@
 """Damaged files get named errors: dataset shards, checkpoints (eval fails, a resumed run falls back)."""
 
+import json
 import re
 import shutil
 from pathlib import Path
@@ -8,7 +9,7 @@ import jax
 import numpy as np
 import pytest
 
-from skillplug_jax import cli
+from skillplug_jax import checksums, cli
 from skillplug_jax.data import loader, rlds
 from skillplug_jax.data.rlds import DatasetError
 from skillplug_jax.evaluate.policy_controller import load_controller
@@ -26,6 +27,17 @@ def shard_of(dataset: Path) -> Path:
 def truncate(path: Path, keep: float = 0.5) -> None:
   data = path.read_bytes()
   path.write_bytes(data[:int(len(data) * keep)])
+
+
+def flip_byte(path: Path, offset: int, mask: int = 0xFF) -> None:
+  data = bytearray(path.read_bytes())
+  data[offset] ^= mask
+  path.write_bytes(bytes(data))
+
+
+def spread_offsets(path: Path, n: int) -> list[int]:
+  """`n` offsets from the first byte to the last, evenly spaced (fewer in a smaller file)."""
+  return sorted(set(np.linspace(0, path.stat().st_size - 1, n).astype(int).tolist()))
 
 
 # ---- datasets -----------------------------------------------------------------
@@ -67,6 +79,7 @@ def test_unreadable_dataset_shard_is_named_when_opened(dataset, tmp_path, damage
 def test_corrupt_record_is_named_when_read(dataset, tmp_path):
   copy = tmp_path / "ds"
   shutil.copytree(dataset, copy)
+  (copy / rlds.CHECKSUMS).unlink()  # without checksums (an older dataset): ArrayRecord's own checks
   shard = shard_of(copy)
   data = bytearray(shard.read_bytes())
   data[100:2000:7] = bytes(b ^ 0xFF for b in data[100:2000:7])  # inside the records; the footer is intact
@@ -75,6 +88,47 @@ def test_corrupt_record_is_named_when_read(dataset, tmp_path):
   with pytest.raises(DatasetError, match=f"dataset file {re.escape(str(shard))} is damaged "
                                          "\\(record 0 cannot be read: "):
     loader.load_demonstrations(copy)
+
+
+def test_every_byte_flip_in_a_dataset_is_caught_when_opened(dataset, tmp_path):
+  """One byte (one bit, then all eight) flipped at offsets spread over every file of a dataset,
+  each alone, densest in the shard's records and footer: open_dataset names the file at once."""
+  copy = tmp_path / "ds"
+  shutil.copytree(dataset, copy)
+  files = sorted(p for p in copy.iterdir() if p.is_file() and p.name != rlds.CHECKSUMS)
+  flips = 0
+  for file in files:
+    pristine = file.read_bytes()
+    offsets = spread_offsets(file, 24)
+    if file == shard_of(copy):  # the records fill the start, the footer the end; zero padding between
+      used = np.nonzero(np.frombuffer(pristine, np.uint8))[0]
+      offsets = sorted(set(offsets) | set(used[np.linspace(0, len(used) - 1, 60).astype(int)].tolist()))
+    for offset in offsets:
+      for mask in (0x01, 0xFF):
+        flip_byte(file, offset, mask)
+        with pytest.raises(DatasetError, match=f"dataset file {re.escape(str(file))} is damaged "
+                                               "\\(it does not match its checksum"):
+          rlds.open_dataset(copy)
+        file.write_bytes(pristine)
+        flips += 1
+  assert flips > 250
+  assert loader.load_demonstrations(copy).num_episodes == 4  # the files put back load
+
+
+def test_a_flipped_digit_in_the_statistics_is_caught(dataset, tmp_path):
+  """Without checksums one flipped bit in norm_stats.json loads other normalisation statistics
+  without a word (ArrayRecord's checks cover the records only); with them it is named."""
+  copy = tmp_path / "ds"
+  shutil.copytree(dataset, copy)
+  stats = copy / "norm_stats.json"
+  text = stats.read_text()
+  first = re.search(r"\d", text[text.index('"mean": ['):]).start() + text.index('"mean": [')
+  offset = first + 2  # a digit of the first action mean: '0.37...' becomes '0.27...'
+  flip_byte(stats, offset, 0x01)
+  with pytest.raises(DatasetError, match=f"dataset file {re.escape(str(stats))} is damaged"):
+    loader.load_demonstrations(copy)
+  (copy / rlds.CHECKSUMS).unlink()
+  assert loader.load_demonstrations(copy).stats != loader.load_demonstrations(dataset).stats
 
 
 def test_regenerate_advice_repeats_the_generating_command(tmp_path):
@@ -181,10 +235,15 @@ def test_evaluation_reads_the_parameters_without_an_optimizer(finished_run, monk
     np.testing.assert_array_equal(np.asarray(y), np.asarray(x))
 
 
-def test_resume_falls_back_to_the_previous_intact_checkpoint(finished_run, data_dir, tmp_path, capsys):
+@pytest.mark.parametrize("damage", ["truncated", "one-byte-flip"])
+def test_resume_falls_back_to_the_previous_intact_checkpoint(finished_run, data_dir, tmp_path, capsys, damage):
   run, final = finished_run
   run = copy_run(run, tmp_path / "run")
-  truncate(largest_file(run / "checkpoints" / "6"))
+  if damage == "truncated":
+    truncate(largest_file(run / "checkpoints" / "6"))
+  else:  # found only by the checksums: orbax restores most such flips without a word
+    bad = largest_array_file(run / "checkpoints" / "6")
+    flip_byte(bad, bad.stat().st_size // 2)
   capsys.readouterr()
   loop.train(tiny(data_dir, run), progress=False)  # the same command again: resumes
   err = capsys.readouterr().err
@@ -209,3 +268,131 @@ def test_no_intact_checkpoint_left(finished_run, data_dir, tmp_path):
                            f".*; 3 is damaged .*Delete {re.escape(str(run / 'checkpoints'))} to train"):
     loop.train(tiny(data_dir, run), progress=False)
   assert checkpoint.manager(run).all_steps() == [3, 6]  # nothing moved when nothing can be resumed
+
+
+# ---- checksums ----------------------------------------------------------------
+
+def read_files(step_dir: Path) -> list[Path]:
+  """Every file of a checkpoint but orbax's commit markers (only their presence counts)."""
+  return sorted(p for p in step_dir.rglob("*") if p.is_file() and p.name != "commit_success.txt")
+
+
+def training_state(run: Path) -> loop.TrainState:
+  """The shape of what a resumed run restores: step, parameters and optimiser state."""
+  cfg = run_files.read_config(run)
+  params = loop.init_params(cfg, jax.random.PRNGKey(0))
+  return loop.TrainState(jax.numpy.zeros((), "int32"), params, loop.optimizer(cfg, params, cfg.max_steps).init(params))
+
+
+def test_checkpoints_hold_checksums_of_their_files(finished_run):
+  for step in (3, 6):
+    item = finished_run[0] / "checkpoints" / str(step) / "default"
+    listed = set(json.loads((item / checkpoint.CHECKSUMS).read_text())["files"])
+    on_disk = {p.relative_to(item).as_posix() for p in item.rglob("*") if p.is_file()}
+    assert listed == on_disk - {checkpoint.CHECKSUMS, "commit_success.txt"}
+    assert checksums.problems(item, checkpoint.CHECKSUMS) == []
+
+
+def test_every_byte_flip_in_a_checkpoint_is_caught(finished_run, tmp_path):
+  """One byte flipped at 24 offsets across each file a restore reads (each flip alone): evaluation
+  and a resumed run's restore both raise DamagedCheckpoint naming the file. Without the
+  checksums most flips in the array files restore without a word (docs/training.md)."""
+  run = copy_run(finished_run[0], tmp_path / "run")
+  step6 = run / "checkpoints" / "6"
+  state = training_state(run)
+  params = state.params
+  mngr = checkpoint.manager(run)
+  flips = 0
+  try:
+    for file in read_files(step6):
+      pristine = file.read_bytes()
+      for offset in spread_offsets(file, 24):
+        flip_byte(file, offset)
+        with pytest.raises(checkpoint.DamagedCheckpoint, match=re.escape(file.name)):
+          checkpoint.restore_params(run, params)
+        with pytest.raises(checkpoint.DamagedCheckpoint, match=re.escape(file.name)):
+          checkpoint.restore(mngr, 6, state)
+        file.write_bytes(pristine)
+        flips += 1
+  finally:
+    mngr.close()
+  assert flips > 300
+  checkpoint.restore_params(run, params)  # the files put back restore
+
+
+def test_a_byte_flip_orbax_misses_is_caught(finished_run, tmp_path, monkeypatch):
+  """A flip in the largest array file that orbax alone restores into other numbers (most do:
+  docs/training.md), found by trying offsets without the checksums; with them it is named."""
+  run = copy_run(finished_run[0], tmp_path / "run")
+  state = training_state(run)
+  mngr = checkpoint.manager(run)
+  ref = jax.tree.leaves(jax.tree.map(np.asarray, checkpoint.restore(mngr, 6, state)))
+  file = largest_array_file(run / "checkpoints" / "6")
+  pristine = file.read_bytes()
+  try:
+    with monkeypatch.context() as m:
+      m.setattr(checkpoint, "check_checksums", lambda path: None)
+      for offset in spread_offsets(file, 40)[1:-1]:
+        flip_byte(file, offset)
+        try:
+          got = jax.tree.leaves(jax.tree.map(np.asarray, checkpoint.restore(mngr, 6, state)))
+          if any(not np.array_equal(x, y) for x, y in zip(ref, got)):
+            break
+        except checkpoint.DamagedCheckpoint:
+          pass
+        file.write_bytes(pristine)
+      else:
+        pytest.fail("without the checksums every flip was caught or harmless")
+    with pytest.raises(checkpoint.DamagedCheckpoint, match=f"{re.escape(str(file))} does not match its checksum"):
+      checkpoint.restore(mngr, 6, state)
+  finally:
+    mngr.close()
+
+
+def test_checkpoint_without_checksums_restores_with_a_note(finished_run, tmp_path, capsys):
+  """Runs written before checksums were kept still evaluate and resume; a lost manifest of a
+  checkpoint whose step metadata says it had one is damage."""
+  run = copy_run(finished_run[0], tmp_path / "run")
+  step6 = run / "checkpoints" / "6"
+  (step6 / "default" / checkpoint.CHECKSUMS).unlink()
+  with pytest.raises(checkpoint.DamagedCheckpoint, match=f"{checkpoint.CHECKSUMS} \\(its checksums\\) is missing"):
+    loop.load_params(run)
+  meta = json.loads((step6 / "_CHECKPOINT_METADATA").read_text())
+  meta["custom_metadata"] = {}  # as orbax wrote it before
+  (step6 / "_CHECKPOINT_METADATA").write_text(json.dumps(meta))
+  capsys.readouterr()
+  _, params, step = loop.load_params(run)
+  assert step == 6
+  assert f"note: checkpoint {step6} has no checksums" in capsys.readouterr().err
+
+
+def test_checksums_are_written_before_the_checkpoint_appears(tmp_path, monkeypatch):
+  """The manifest goes into orbax's temporary directory, so the rename that completes a
+  checkpoint brings it: a kill never leaves a checkpoint without one."""
+  seen = []
+  write = checksums.write_manifest
+
+  def spy(root, name, skip=()):
+    seen.append((Path(root), (tmp_path / "checkpoints" / "1").exists()))
+    return write(root, name, skip)
+
+  monkeypatch.setattr(checksums, "write_manifest", spy)
+  state = {"w": jax.numpy.arange(12.0).reshape(3, 4)}
+  mngr = checkpoint.manager(tmp_path)
+  checkpoint.save(mngr, 1, state)
+  mngr.wait_until_finished()
+  (root, final_existed), = seen
+  assert "tmp" in root.name and not final_existed
+  mngr.close()
+  assert (tmp_path / "checkpoints" / "1" / "default" / checkpoint.CHECKSUMS).is_file()
+
+
+def test_a_flipped_bit_in_the_step_metadata_is_named(finished_run, tmp_path):
+  """Orbax reads every step's _CHECKPOINT_METADATA when it lists the checkpoints (it writes that
+  file after the items, outside their manifest); a flipped bit in a key was a bare ValueError."""
+  run = copy_run(finished_run[0], tmp_path / "run")
+  meta = run / "checkpoints" / "6" / "_CHECKPOINT_METADATA"
+  flip_byte(meta, meta.read_bytes().index(b"item_handlers") + 1, 0x01)
+  with pytest.raises(checkpoint.DamagedCheckpoint,
+                     match=f"{re.escape(str(meta))} is corrupt .*Move or delete {re.escape(str(meta.parent))}"):
+    loop.load_params(run)

@@ -186,6 +186,7 @@ def test_datasets_of_an_older_recording_format_are_refused(tmp_path):
   path = write_synthetic(tmp_path, "old", rlds.DatasetSpec(("jujube_pick",), None),
                          [rlds.EpisodeRecord("jujube_pick", 0, 0, synthetic_episode(rng, 5))])
   assert loader.load_demonstrations(path).num_episodes == 1
+  (path / rlds.CHECKSUMS).unlink()  # as written then: before checksums were kept
   info = path / "dataset_info.json"
   info.write_text(json.dumps({**json.loads(info.read_text()), "version": "1.0.0"}))
   with pytest.raises(DatasetError, match=f"dataset format 1.0.0, this code reads {rlds.FORMAT_VERSION}"):
@@ -234,6 +235,8 @@ def test_wrong_fields_and_action_dimension(image_dataset, tmp_path):
   no_terminal, short_action = tmp_path / "a", tmp_path / "b"
   shutil.copytree(path, no_terminal)
   shutil.copytree(path, short_action)
+  for d in (no_terminal, short_action):  # as written by another tool, without checksums
+    (d / rlds.CHECKSUMS).unlink()
   _edit_step_features(no_terminal, lambda steps: steps.pop("is_terminal"))
   with pytest.raises(DatasetError, match="missing fields \\['is_terminal'\\]"):
     loader.load_demonstrations(no_terminal)
@@ -250,6 +253,7 @@ def test_corrupt_statistics(image_dataset, tmp_path):
   copy = tmp_path / "copy"
   import shutil
   shutil.copytree(path, copy)
+  (copy / rlds.CHECKSUMS).unlink()  # a dataset without checksums (older, or another tool's)
   (copy / normalization.STATS_FILE).write_text('{"action": {"mean": [0]}}')
   with pytest.raises(DatasetError, match="norm_stats.json is corrupt"):
     loader.load_demonstrations(copy)

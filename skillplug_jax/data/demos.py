@@ -123,6 +123,7 @@ def _write(cfg: DemoConfig, out: str | os.PathLike, tasks: tuple[str, ...], fina
       objects.append(z["obs/object_state"])
   normalization.write_stats(version_dir, normalization.stats_of(
       np.concatenate(actions), np.concatenate(joints), np.concatenate(objects)))
+  rlds.write_checksums(version_dir)
   os.replace(version_dir, final)
   shutil.rmtree(building, ignore_errors=True)
   shutil.rmtree(staging, ignore_errors=True)

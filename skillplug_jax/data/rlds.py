@@ -10,11 +10,19 @@ through PIL.
 Step t holds the observation the expert saw and the action it then sent. The
 last step of an episode is its last action; `is_terminal` is set there when
 the episode ended in success.
+
+The writer seals a dataset with a manifest of its files' checksums
+(`skillplug_checksums.json`, `write_checksums`) before the rename that
+publishes it; `open_dataset` compares every file with it. ArrayRecord's own
+checks catch changed bytes in the records, but the JSON beside them
+(norm_stats.json, dataset_info.json, metadata.json) has none: a flipped digit
+there parses and changes the data's normalisation or its split without a word.
 """
 
 from __future__ import annotations
 
 import contextlib
+import json
 import os
 from pathlib import Path
 from typing import Callable, Iterable, Iterator, NamedTuple
@@ -25,6 +33,7 @@ import tensorflow_datasets as tfds
 
 import envs
 from envs.robot import CAMERAS
+from skillplug_jax import checksums
 from skillplug_jax.data.recording import Episode
 
 ACTION_DIM = envs.robot.ACTION_DIM
@@ -32,6 +41,7 @@ ACTION_DIM = envs.robot.ACTION_DIM
 # the release); 1.0.0 episodes were cut at the first step a looser check passed.
 FORMAT_VERSION = "3.0.0"
 BUILDER_NAME = "skillplug_demos"
+CHECKSUMS = "skillplug_checksums.json"
 
 
 class DatasetError(ValueError):
@@ -174,6 +184,12 @@ def write_dataset(build_root: str | os.PathLike, spec: DatasetSpec,
   return Path(builder.data_dir)
 
 
+def write_checksums(dataset_dir: str | os.PathLike) -> None:
+  """Checksum every file of a finished dataset (its statistics too): the last write before the
+  rename that publishes it, so a published dataset always has its manifest."""
+  checksums.write_manifest(dataset_dir, CHECKSUMS)
+
+
 # ---- reading ----------------------------------------------------------------
 
 REQUIRED_STEP_FIELDS = ("observation", "action", "is_first", "is_last", "is_terminal")
@@ -189,6 +205,7 @@ def open_dataset(path: str | os.PathLike):
   if not (path / "dataset_info.json").is_file() or not (path / "features.json").is_file():
     raise DatasetError(f"{path} is not a complete dataset: dataset_info.json or features.json "
                        "is missing (an interrupted write?); delete it and generate it again")
+  check_checksums(path)
   try:
     builder = tfds.builder_from_directory(os.fspath(path))
   except Exception as e:  # noqa: BLE001  tfds raises many kinds; name the file
@@ -222,6 +239,28 @@ def check_data_files(builder) -> None:
       if found != expected:
         raise DatasetError(damaged_file_message(
             builder, file, f"it holds {found} records, dataset_info.json says {expected}"))
+
+
+def check_checksums(path: Path) -> None:
+  """Compare every file of a dataset with its checksum manifest, before tfds reads any.
+
+  A changed, truncated or missing file raises DatasetError naming it. A dataset
+  without a manifest (written before checksums were kept, or by another tool)
+  is read with the readers' own checks alone. Hashing costs about a second per
+  GB, little next to decoding the episodes.
+  """
+  if not (path / CHECKSUMS).is_file():
+    return
+  found = checksums.problems(path, CHECKSUMS)
+  if not found:
+    return
+  (file, what), more = found[0], (f"; {len(found) - 1} more files differ" if len(found) > 1 else "")
+  damaged = {f for f, _ in found}
+  try:  # the generator's settings, for the command that writes the dataset again
+    metadata = None if path / "metadata.json" in damaged else json.loads((path / "metadata.json").read_bytes())
+  except (OSError, ValueError):
+    metadata = None
+  raise DatasetError(f"dataset file {file} is damaged (it {what}{more}). {regenerate_advice(path, metadata)}")
 
 
 def damaged_file_message(builder, file, reason: str) -> str:

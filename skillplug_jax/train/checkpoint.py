@@ -1,6 +1,7 @@
 """A run's checkpoints: orbax saves and restores, and the integrity checks around them.
 
-    <run>/checkpoints/<step>/  orbax: params, opt_state, step
+    <run>/checkpoints/<step>/          orbax: params, opt_state, step
+    <run>/checkpoints/<step>/default/  ... and skillplug_checksums.json: each file's size and SHA-256
 
 The JSON beside them (config.json, norm_stats.json) is `run_files`'s.
 
@@ -10,16 +11,31 @@ damaged afterwards (a truncated copy, a full disk, a bad sector) raises
 DamagedCheckpoint naming its directory; a resumed training run then falls back
 to the newest intact one (`restore_latest(..., fallback=True)`). Evaluation
 reads only the latest checkpoint's parameters (`restore_params`).
+
+Orbax's own checks miss changed bytes in the stored arrays (a flip inside
+zstd-compressed data can decompress to other numbers), so each checkpoint
+carries a manifest of its files' checksums, written into the item directory
+when orbax finalizes it, before the rename that completes the checkpoint (a
+checkpoint is never seen without it), and compared with every file before a
+restore reads any. Checkpoints written before checksums were kept restore
+without (a note says so).
 """
 
 from __future__ import annotations
 
+import dataclasses
 import json
+import sys
 from pathlib import Path
 
 import jax
 import orbax.checkpoint as ocp
 import tensorstore as ts
+
+from skillplug_jax import checksums
+
+CHECKSUMS = "skillplug_checksums.json"  # in each item directory (orbax's own files start with '_')
+_KEPT = "skillplug_checksums"  # the step's custom metadata: the items hold a manifest
 
 
 class CheckpointError(ValueError):
@@ -42,19 +58,71 @@ def manager(run_dir: Path, keep: int = 2, params_only: bool = False) -> ocp.Chec
   """The run's checkpoints. The item handler lets `restore` read a checkpoint's tree
   metadata before its arrays. `params_only`: a manager for `restore(..., params_only=True)`,
   which only reads: StandardCheckpointHandler cannot restore part of a tree, the
-  PyTreeCheckpointHandler it wraps (the same files) can."""
-  if params_only:
-    return ocp.CheckpointManager((Path(run_dir) / "checkpoints").absolute(),
-                                 options=ocp.CheckpointManagerOptions(create=False),
-                                 item_handlers=ocp.PyTreeCheckpointHandler())
-  return ocp.CheckpointManager(
-      (Path(run_dir) / "checkpoints").absolute(),
-      options=ocp.CheckpointManagerOptions(max_to_keep=keep, create=True),
-      item_handlers=ocp.StandardCheckpointHandler())
+  PyTreeCheckpointHandler it wraps (the same files) can.
+
+  Orbax reads every step's _CHECKPOINT_METADATA here, and one changed byte in it
+  can make that fail (an unknown key): DamagedCheckpoint then names the file."""
+  directory = (Path(run_dir) / "checkpoints").absolute()
+  try:
+    if params_only:
+      return ocp.CheckpointManager(directory, options=ocp.CheckpointManagerOptions(create=False),
+                                   item_handlers=ocp.PyTreeCheckpointHandler())
+    return ocp.CheckpointManager(directory, options=ocp.CheckpointManagerOptions(max_to_keep=keep, create=True),
+                                 item_handlers=ChecksummedHandler())
+  except ValueError as e:
+    _raise_if_step_metadata_damaged(directory, e)
+    raise
+
+
+def _raise_if_step_metadata_damaged(directory: Path, e: ValueError) -> None:
+  """DamagedCheckpoint naming the newest step whose _CHECKPOINT_METADATA orbax cannot take."""
+  from orbax.checkpoint._src.metadata import step_metadata_serialization
+  for step in sorted((p for p in directory.iterdir() if p.name.isdigit()), key=lambda p: -int(p.name)):
+    file = step / "_CHECKPOINT_METADATA"
+    try:
+      meta = json.loads(file.read_bytes())
+    except (OSError, ValueError):  # orbax skips unreadable JSON; check_index names it at restore
+      continue
+    try:
+      step_metadata_serialization.deserialize(meta)
+    except Exception as bad:  # noqa: BLE001  orbax's checks of the keys and values
+      raise DamagedCheckpoint(step, f"{file} is corrupt ({short_reason(bad)})",
+                              f"Move or delete {step} to use the checkpoints before it") from e
+
+
+class ChecksummedHandler(ocp.StandardCheckpointHandler):
+  """StandardCheckpointHandler that writes the item's checksum manifest when orbax finalizes it.
+
+  Orbax calls `finalize` once every process's files are written (and merged into
+  one OCDBT index), while the item is still in its temporary directory: the
+  manifest then lands with the rename that makes the checkpoint visible, so a
+  kill at any moment leaves either no checkpoint or one with its manifest. The
+  first process writes it (the others' files are on the shared disk by then).
+  """
+
+  def finalize(self, directory) -> None:
+    super().finalize(directory)
+    if jax.process_index() == 0:
+      checksums.write_manifest(Path(str(directory)), CHECKSUMS)
+
+
+# Orbax finds an item's handler by the exact class of its arguments.
+@ocp.args.register_with_handler(ChecksummedHandler, for_save=True)
+@dataclasses.dataclass
+class ChecksummedSave(ocp.args.StandardSave):
+  pass
+
+
+@ocp.args.register_with_handler(ChecksummedHandler, for_restore=True)
+@dataclasses.dataclass
+class ChecksummedRestore(ocp.args.StandardRestore):
+  pass
 
 
 def save(mngr: ocp.CheckpointManager, step: int, state) -> None:
-  mngr.save(step, args=ocp.args.StandardSave(state))
+  """Start saving `state` as `step` (orbax finishes in the background; the step metadata
+  records that the items carry checksums, so that a lost manifest is damage, not an old run)."""
+  mngr.save(step, args=ChecksummedSave(state), custom_metadata={_KEPT: CHECKSUMS})
 
 
 def step_dir(mngr: ocp.CheckpointManager, step: int) -> Path:
@@ -76,6 +144,7 @@ def restore(mngr: ocp.CheckpointManager, step: int, like, params_only: bool = Fa
   if params_only:
     device = jax.sharding.SingleDeviceSharding(jax.devices()[0])
     abstract = {"params": jax.tree.map(lambda x: x.update(sharding=x.sharding or device), abstract)}
+  check_checksums(path)
   check_index(path)
   try:
     stored = mngr.item_metadata(step)
@@ -88,7 +157,7 @@ def restore(mngr: ocp.CheckpointManager, step: int, like, params_only: bool = Fa
     raise CheckpointError(f"checkpoint {path} does not fit this model: {misfit}")
   args = (ocp.args.PyTreeRestore(abstract, ocp.checkpoint_utils.construct_restore_args(abstract),
                                  partial_restore=True) if params_only
-          else ocp.args.StandardRestore(abstract))
+          else ChecksummedRestore(abstract))
   try:
     state = mngr.restore(step, args=args)
   except Exception as e:  # noqa: BLE001  orbax wraps TensorStore read errors in a bare Exception
@@ -196,7 +265,15 @@ def check_index(path: Path) -> None:
         if not isinstance(loc, str):
           continue
         _check_reference(path, item, loc)
-        for entry in ts.ocdbt.dump(base, loc).result().get("entries", []):
+        try:
+          entries = ts.ocdbt.dump(base, loc).result().get("entries", [])
+        except (ValueError, OSError) as e:  # name the file that holds the node
+          file = _referenced_file(item, loc)
+          if file is None:
+            raise
+          raise DamagedCheckpoint(path, f"{file} holds an index node that cannot be decoded "
+                                        f"({short_reason(e)})") from e
+        for entry in entries:
           if "location" in entry:  # a child node
             pending.append(entry["location"])
           elif "indirect_value" in entry:
@@ -205,6 +282,39 @@ def check_index(path: Path) -> None:
       raise
     except (ValueError, OSError) as e:  # TensorStore: a node that cannot be read or decoded
       raise DamagedCheckpoint(path, short_reason(e)) from e
+
+
+def check_checksums(path: Path) -> None:
+  """Compare every file of each item of a checkpoint with the item's checksum manifest.
+
+  A changed, truncated or missing file raises DamagedCheckpoint naming it; so does
+  a missing manifest where the step metadata says `save` wrote one. Without
+  either, the checkpoint predates checksums: it restores with orbax's checks
+  alone, and a note says so. Reading the files costs about a second per GB.
+  """
+  unchecked = []
+  for item in sorted(p for p in Path(path).iterdir() if p.is_dir()):
+    if (item / CHECKSUMS).is_file():
+      found = checksums.problems(item, CHECKSUMS)
+      if found:
+        (file, what), more = found[0], (f" (and {len(found) - 1} more files)" if len(found) > 1 else "")
+        raise DamagedCheckpoint(path, f"{file} {what}{more}")
+    elif _checksums_kept(path):
+      raise DamagedCheckpoint(path, f"{item / CHECKSUMS} (its checksums) is missing")
+    else:
+      unchecked.append(item.name)
+  if unchecked:
+    print(f"note: checkpoint {path} has no checksums (written before they were kept); "
+          "only orbax's own checks apply to it", file=sys.stderr)
+
+
+def _checksums_kept(path: Path) -> bool:
+  """Whether `save` wrote this checkpoint with checksums (its step metadata says so)."""
+  try:
+    meta = json.loads((Path(path) / "_CHECKPOINT_METADATA").read_bytes())
+  except (OSError, ValueError):  # no step metadata: check_index has passed it, so an older orbax
+    return False
+  return isinstance(meta, dict) and _KEPT in (meta.get("custom_metadata") or {})
 
 
 def _check_json(path: Path, file: Path) -> None:
@@ -219,15 +329,23 @@ def _check_json(path: Path, file: Path) -> None:
 
 def _check_reference(path: Path, item: Path, ref: str) -> None:
   """'<kind>:<base>:<file>:<offset>:<length>' (OCDBT's dump) must lie inside <item>/<base><file>."""
-  parts = ref.split(":")
-  if len(parts) < 5 or not (parts[-2].isdigit() and parts[-1].isdigit()):
+  file = _referenced_file(item, ref)
+  if file is None:
     return  # a form this check does not know: leave it to the restore
-  file = item / parts[1] / ":".join(parts[2:-2])
+  parts = ref.split(":")
   if not file.is_file():
     raise DamagedCheckpoint(path, f"{file} is missing")
   size, needed = file.stat().st_size, int(parts[-2]) + int(parts[-1])
   if size < needed:
     raise DamagedCheckpoint(path, f"{file} is truncated ({size} bytes, its index needs {needed})")
+
+
+def _referenced_file(item: Path, ref: str) -> Path | None:
+  """The file an OCDBT location '<kind>:<base>:<file>:<offset>:<length>' points into (None: another form)."""
+  parts = ref.split(":")
+  if len(parts) < 5 or not (parts[-2].isdigit() and parts[-1].isdigit()):
+    return None
+  return item / parts[1] / ":".join(parts[2:-2])
 
 
 def tree_misfit(abstract, stored) -> str:
