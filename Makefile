@@ -21,7 +21,7 @@ export MUJOCO_GL ?= egl
 # contention doubled the quick preset's step.) docs/measurements/speed.md.
 export GLIBC_TUNABLES ?= glibc.malloc.hugetlb=1
 
-.PHONY: install test quickstart toy-skills paper-cpu loss-ablation k-sweep notebooks experts demos pretrain fewshot eval bench-envs bench-loader bench-train bench-eval bench scenes clean
+.PHONY: install test quickstart toy-skills paper-cpu loss-ablation k-sweep notebooks experts demos pretrain fewshot eval bench-envs bench-loader bench-train bench-eval bench-eval-scale bench soak scenes clean
 
 install: $(VENV)/.installed
 
@@ -126,6 +126,16 @@ bench-train: install
 bench-eval: install
 	mkdir -p $(OUT)
 	$(PY) -m benchmarks.bench_eval --out $(OUT)/bench_eval.json
+
+# every task x many trials of one state policy, memory bounded by the batch (BENCH_EVAL_SCALE_ARGS: --trials, --batches, --run)
+bench-eval-scale: install
+	mkdir -p $(OUT)
+	$(PY) -m benchmarks.bench_eval_scale --out $(OUT)/bench_eval_scale.json $(BENCH_EVAL_SCALE_ARGS)
+
+# kill -9 a short training again and again (once mid-checkpoint); it must end bit-identical.
+soak: install
+	mkdir -p $(OUT)
+	$(PY) -m benchmarks.soak_kill --work $(OUT)/soak_kill --data-dir $(OUT)/datasets --out $(OUT)/soak_kill.json
 
 scenes: install
 	$(PY) -m figures.scene_pictures --out docs/scenes

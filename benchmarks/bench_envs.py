@@ -39,7 +39,7 @@ from __future__ import annotations
 
 import os
 
-os.environ.setdefault("MUJOCO_GL", "egl")
+import envs  # first: it picks MUJOCO_GL (envs/headless.py) before mujoco is imported
 
 import argparse  # noqa: E402
 import dataclasses  # noqa: E402
@@ -53,7 +53,6 @@ import jax.numpy as jnp  # noqa: E402
 import mujoco  # noqa: E402
 from mujoco import mjx  # noqa: E402
 
-import envs  # noqa: E402
 from envs import robot, rollout  # noqa: E402
 from skillplug_jax.atomic_json import write_json_atomic  # noqa: E402
 from skillplug_jax.evaluate.policy_controller import policy_controller  # noqa: E402

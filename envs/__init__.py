@@ -11,23 +11,27 @@ MuJoCo Warp, for accelerators) or "auto" (MJX-Warp when JAX sees a GPU).
 
 from __future__ import annotations
 
-import jax.numpy as jnp
+from envs import headless
 
-from envs import batched, mujoco_batch
-from envs.batched import BatchedEnv
-from envs.env import BACKENDS, EnvConfig, TabletopEnv, resolve_backend
-from envs.mujoco_batch import MujocoBatchEnv
-from envs.tasks.block_bridge_place import BlockBridgePlace
-from envs.tasks.block_place import BlockPlace
-from envs.tasks.coffeecup_place import CoffeecupPlace
-from envs.tasks.cuplid_cover import CuplidCover
-from envs.tasks.drawer_open import DrawerOpen
-from envs.tasks.jujube_pick import JujubePick
-from envs.tasks.jujube_place import JujubePlace
-from envs.tasks.kiwi_place import KiwiPlace
-from envs.tasks.laptop_close import LaptopClose
-from envs.tasks.mouse_push import MousePush
-from envs.tasks.stack_block import StackBlock
+headless.choose_gl()  # first: MuJoCo reads MUJOCO_GL once, when it is imported
+
+import jax.numpy as jnp  # noqa: E402
+
+from envs import batched, mujoco_batch  # noqa: E402
+from envs.batched import BatchedEnv  # noqa: E402
+from envs.env import BACKENDS, EnvConfig, TabletopEnv, resolve_backend  # noqa: E402
+from envs.mujoco_batch import MujocoBatchEnv  # noqa: E402
+from envs.tasks.block_bridge_place import BlockBridgePlace  # noqa: E402
+from envs.tasks.block_place import BlockPlace  # noqa: E402
+from envs.tasks.coffeecup_place import CoffeecupPlace  # noqa: E402
+from envs.tasks.cuplid_cover import CuplidCover  # noqa: E402
+from envs.tasks.drawer_open import DrawerOpen  # noqa: E402
+from envs.tasks.jujube_pick import JujubePick  # noqa: E402
+from envs.tasks.jujube_place import JujubePlace  # noqa: E402
+from envs.tasks.kiwi_place import KiwiPlace  # noqa: E402
+from envs.tasks.laptop_close import LaptopClose  # noqa: E402
+from envs.tasks.mouse_push import MousePush  # noqa: E402
+from envs.tasks.stack_block import StackBlock  # noqa: E402
 
 TASKS: dict[str, type[TabletopEnv]] = {
     cls.name: cls for cls in (

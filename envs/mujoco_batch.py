@@ -27,6 +27,7 @@ import copy
 import os
 import queue
 import threading
+import time
 
 import jax
 import jax.numpy as jnp
@@ -38,6 +39,7 @@ from flax import struct
 from mujoco import batch as mj_batch
 
 from envs.env import SOLVER_LIMIT_BITS, TabletopEnv, clipped_ctrl
+from envs.headless import RendererError, renderer_error
 from envs.robot import CAMERAS
 
 RENDERER = "mujoco-opengl"  # what datasets and runs record (MJX-Warp's is "warp-raycast")
@@ -51,6 +53,9 @@ CLOCK_START = 1.0  # s; MuJoCo's reset of an unstable simulation sets it to 0
 os.environ.setdefault("LP_NUM_THREADS", "1")
 # Effects MJX-Warp's ray caster does not draw either, off: about 10% faster.
 _RENDER_FLAGS_OFF = ("mjRND_SHADOW", "mjRND_REFLECTION", "mjRND_SKYBOX", "mjRND_FOG", "mjRND_HAZE")
+# A GL context is made in milliseconds (EGL) to a second (OSMesa); one not
+# made by then is stuck, and the caller is told rather than left waiting.
+RENDERER_START_S = 60.0
 
 
 @struct.dataclass
@@ -125,8 +130,9 @@ class MujocoBatchEnv:
   """`num_envs` copies of a task on MuJoCo's C engine, stepped on `nthread` threads (0: every core).
 
   With `render=True`, obs also holds `side_rgb` and `wrist_rgb` (uint8,
-  [B, H, W, 3]) drawn by `mujoco.Renderer` (OpenGL; EGL offscreen where
-  MUJOCO_GL=egl), one renderer per worker thread.
+  [B, H, W, 3]) drawn by `mujoco.Renderer` (OpenGL; offscreen through EGL or
+  OSMesa, as envs/headless.py picks MUJOCO_GL), one renderer per worker thread.
+  A renderer that cannot start raises `envs.headless.RendererError` here.
   """
 
   backend = "mujoco"
@@ -215,16 +221,41 @@ class CameraRenderer:
   An OpenGL context belongs to the thread that made it, so each worker thread
   makes, uses and closes its own renderer; `close` (or garbage collection)
   asks the workers to do so. The offscreen buffer is the image size, without
-  multisampling.
+  multisampling. The constructor waits until every worker has its renderer:
+  one that cannot start (no display for GLFW, no EGL) raises RendererError
+  here, naming the cause, and a worker that dies later makes `render` raise,
+  so that nothing waits on a dead thread.
   """
 
   def __init__(self, model: mujoco.MjModel, image_size, nthread: int):
     self._size = tuple(image_size)
     render_model = _render_model(model, *self._size)
     self._jobs = [queue.SimpleQueue() for _ in range(max(1, nthread))]
-    for jobs in self._jobs:  # the workers hold no reference to self, so it can be collected
-      threading.Thread(target=_render_worker, args=(render_model, self._size, jobs), daemon=True,
-                       name="mujoco-render").start()
+    started = queue.SimpleQueue()
+    self._threads = [threading.Thread(target=_render_worker, args=(render_model, self._size, jobs, started),
+                                      daemon=True, name="mujoco-render")
+                     for jobs in self._jobs]  # the workers hold no reference to self, so it can be collected
+    # Under GLFW (MUJOCO_GL unset or glfw), one renderer first, then the others:
+    # two of its contexts failing at once deadlock inside MuJoCo 4.0's GL
+    # loader, where one failing alone raises. EGL and OSMesa start together.
+    first = len(self._threads) if os.environ.get("MUJOCO_GL", "").lower() in ("egl", "osmesa") else 1
+    self._start(self._threads[:first], started)
+    self._start(self._threads[first:], started)
+
+  def _start(self, threads: list, started: queue.SimpleQueue) -> None:
+    """Start `threads`; raise RendererError, naming the cause, unless each has its renderer."""
+    for t in threads:
+      t.start()
+    deadline = time.monotonic() + RENDERER_START_S
+    try:
+      errors = [e for e in (started.get(timeout=max(0.0, deadline - time.monotonic())) for _ in threads)
+                if e is not None]
+    except queue.Empty:
+      self.close()
+      raise renderer_error(None, f"did not start within {RENDERER_START_S:.0f} s") from None
+    if errors:
+      self.close()
+      raise renderer_error(errors[0]) from errors[0]
 
   def render(self, qpos: np.ndarray, ids: np.ndarray, out: dict | None = None) -> dict:
     """Draw simulations `ids` (from their qpos rows) into `out` ({camera: [B, H, W, 3]})."""
@@ -234,13 +265,22 @@ class CameraRenderer:
     chunks = [c for c in np.array_split(ids, len(self._jobs)) if c.size]
     for jobs, chunk in zip(self._jobs, chunks):
       jobs.put((qpos, chunk, out, done))
-    errors = [e for e in (done.get() for _ in chunks) if e is not None]
+    errors = [e for e in (self._wait(done) for _ in chunks) if e is not None]
     if errors:
       raise errors[0]
     return out
 
+  def _wait(self, done: queue.SimpleQueue):
+    """A worker's answer; RendererError if a worker thread is gone (it would never answer)."""
+    while True:
+      try:
+        return done.get(timeout=1.0)
+      except queue.Empty:
+        if not all(t.is_alive() for t in self._threads):
+          raise RendererError("a MuJoCo renderer thread died without an answer (see its traceback above)") from None
+
   def close(self) -> None:
-    for jobs in self._jobs:
+    for jobs in getattr(self, "_jobs", ()):
       jobs.put(None)
     self._jobs = []
 
@@ -248,12 +288,21 @@ class CameraRenderer:
     self.close()
 
 
-def _render_worker(model: mujoco.MjModel, size, jobs: queue.SimpleQueue) -> None:
-  renderer = mujoco.Renderer(model, *size)
-  for flag in _RENDER_FLAGS_OFF:
-    renderer.scene.flags[getattr(mujoco.mjtRndFlag, flag)] = 0
-  data = mujoco.MjData(model)
-  cam_ids = [model.camera(c).id for c in CAMERAS]
+def _render_worker(model: mujoco.MjModel, size, jobs: queue.SimpleQueue, started: queue.SimpleQueue) -> None:
+  """Make a renderer and tell `started` (None, or the exception), then draw jobs until None."""
+  renderer = None
+  try:
+    renderer = mujoco.Renderer(model, *size)
+    for flag in _RENDER_FLAGS_OFF:
+      renderer.scene.flags[getattr(mujoco.mjtRndFlag, flag)] = 0
+    data = mujoco.MjData(model)
+    cam_ids = [model.camera(c).id for c in CAMERAS]
+  except Exception as e:  # noqa: BLE001  handed to the caller's thread
+    if renderer is not None:
+      renderer.close()
+    started.put(e)
+    return
+  started.put(None)
   try:
     while (job := jobs.get()) is not None:
       qpos, ids, out, done = job

@@ -18,7 +18,9 @@ config.json (`experiment.RunRecord`), so that its row is named, and it is
 adapted, as it was trained, whatever the config file says later.
 
 Everything resumes: a run continues from its last checkpoint, an evaluation
-already written (`<run>/eval/*.json`) is read back, not redone. Each
+already written (`<run>/eval/*.json`) is read back, not redone. SIGTERM or
+SIGINT (Ctrl-C) stops every job cleanly, training jobs after checkpointing
+their step (`in_workers`); the same command resumes. Each
 ACT+SkillPlug evaluation also writes its routing weights, every query of
 every trial, beside it (`*.routing.npz`, `protocol.write_routing`).
 """
@@ -29,6 +31,8 @@ import argparse
 import dataclasses
 import json
 import multiprocessing
+import os
+import signal
 import sys
 import time
 from concurrent.futures import ProcessPoolExecutor, as_completed
@@ -43,7 +47,7 @@ from skillplug_jax.atomic_json import write_json_atomic, write_text_atomic
 from skillplug_jax.evaluate import groups, protocol
 from skillplug_jax.evaluate.policy_controller import load_controller
 from skillplug_jax.experiment import Experiment, RunRecord, Variant
-from skillplug_jax.train import loop, run_files
+from skillplug_jax.train import loop, preemption, run_files
 from skillplug_jax.train.config import TrainConfig
 
 
@@ -129,6 +133,79 @@ def job(exp: Experiment, policy: str, seed: int, out: Path, data_dir: Path | Non
   return dict(run=str(run), pretrain=pretrain, fewshot=adapted, stages_s=stages)
 
 
+def in_workers(workers: int, args: list[tuple]) -> list[dict]:
+  """`job(*a)` for each of `args` in `workers` processes side by side; their results in order.
+
+  SIGTERM or SIGINT to this process (or Ctrl-C to the whole process group) stops every job cleanly:
+  this process sets the pool's stop event and passes SIGTERM to its workers once (they ignore the
+  signals themselves between jobs, so that none dies idle and breaks the pool); a training job
+  checkpoints its step, an evaluation is dropped, a job not yet started does not start. Then
+  `preemption.Stopped` is raised here, after every worker has stopped; the same command resumes.
+  """
+  ctx = multiprocessing.get_context("spawn")
+  stop = ctx.Event()
+  with ProcessPoolExecutor(workers, mp_context=ctx, initializer=_worker_init, initargs=(stop,)) as pool:
+    futures = {pool.submit(_worker_job, *a): i for i, a in enumerate(args)}
+    with _PassSignals(stop) as signalled:
+      done, stopped = {}, []
+      for f in as_completed(futures):
+        try:
+          done[futures[f]] = f.result()
+        except preemption.Stopped as e:
+          stopped.append(e)
+  if stopped or signalled.signum:
+    for e in stopped:
+      if isinstance(e, preemption.Preempted):
+        print(f"[pipeline] {e}", file=sys.stderr, flush=True)
+    raise preemption.Stopped(signalled.signum or stopped[0].signum)
+  return [done[i] for i in range(len(args))]
+
+
+class _PassSignals:
+  """In the pipeline's process while its workers run: the first SIGTERM/SIGINT sets `stop` and passes
+  SIGTERM to every worker; a second one acts at once (the default action)."""
+
+  def __init__(self, stop):
+    self.stop, self.signum, self._previous = stop, None, {}
+
+  def _handle(self, signum, frame) -> None:
+    self.signum = signum
+    self.stop.set()  # before the signals: a worker that checks the event after them sees it
+    for child in multiprocessing.active_children():
+      os.kill(child.pid, signal.SIGTERM)
+    print(f"[pipeline] {signal.Signals(signum).name}: stopping the jobs (training jobs checkpoint their "
+          "step first) ...", file=sys.stderr, flush=True)
+    self.__exit__()
+
+  def __enter__(self) -> _PassSignals:
+    self._previous = {s: signal.signal(s, self._handle) for s in preemption.SIGNALS}
+    return self
+
+  def __exit__(self, *exc) -> None:
+    for s, previous in self._previous.items():
+      signal.signal(s, previous if previous is not None else signal.SIG_DFL)
+    self._previous = {}
+
+
+_STOP = None  # in a worker process: the pool's stop event, set once by `_worker_init`
+
+
+def _worker_init(stop) -> None:
+  global _STOP
+  _STOP = stop
+  for s in preemption.SIGNALS:  # the pipeline's process coordinates: it passes SIGTERM to busy workers
+    signal.signal(s, signal.SIG_IGN)
+
+
+def _worker_job(*args) -> dict:
+  """`job(*args)` in a worker: a SIGTERM raises `Stopped` (training checkpoints first); the stop
+  event is read after the handler is in place, so that no job starts once a stop was asked for."""
+  with preemption.RaiseOnSignal((signal.SIGTERM,)):
+    if _STOP is not None and _STOP.is_set():
+      raise preemption.Stopped(signal.SIGTERM)
+    return job(*args)
+
+
 def make_datasets(exp: Experiment, out: Path) -> float:
   """Every dataset the jobs read, generated here first (the workers then only read them)."""
   t0 = time.time()
@@ -158,12 +235,10 @@ def run(exp: Experiment, out: Path, configs: Path | None = None) -> dict:
   args = [(arm, p, s, arm_out, out / "datasets", name, experiment.record(arm, p, configs))
           for name, arm, arm_out, p, s in jobs]
   if exp.workers == 1:  # in this process, one job after another
-    parts = [job(*a) for a in args]
+    with preemption.RaiseOnSignal():
+      parts = [job(*a) for a in args]
   else:
-    with ProcessPoolExecutor(exp.workers, mp_context=multiprocessing.get_context("spawn")) as pool:
-      futures = {pool.submit(job, *a): i for i, a in enumerate(args)}
-      done = {futures[f]: f.result() for f in as_completed(futures)}
-    parts = [done[i] for i in range(len(jobs))]
+    parts = in_workers(exp.workers, args)
   stages["jobs (parallel)"] = round(time.time() - t0, 1)
   for (name, _, _, p, s), part in zip(jobs, parts):
     stages.update({f"{name + ' ' if name else ''}{p} seed {s} {k}": v for k, v in part["stages_s"].items()})
@@ -200,6 +275,9 @@ def main(argv=None, default_config: str = "cpu", default_out: str = "") -> int:
     experiment.expand(exp)  # each variant's settings are checked before any work
     out = Path(args.out or f"results/{Path(args.config).stem}")
     summary = run(exp, out, experiment.directory(args.config))
+  except preemption.Stopped as e:  # SIGTERM/SIGINT: finished stages and checkpoints are kept
+    print(f"pipeline: {e}", file=sys.stderr)
+    return e.exit_code
   except (ValueError, RuntimeError) as e:  # a worker's error arrives here; finished stages are kept
     print(f"pipeline: error: {e}", file=sys.stderr)
     return 2 if isinstance(e, ValueError) else 1

@@ -249,7 +249,7 @@ def main(argv=None) -> int:
   p.add_argument("--videos", type=int, default=0,
                  help="GIFs of each task's first N trials in every routing mode, for the first seed "
                       "(OUT/probe_videos/seed<S>/<mode>/<task>_trialNN.gif; only for modes not yet cached; "
-                      "rendering needs MUJOCO_GL=egl on a machine without a display, as make sets)")
+                      "rendered offscreen: EGL or OSMesa, docs/tasks.md#images)")
   args = p.parse_args(argv)
   envs.quiet_warp()
   try:

@@ -3,7 +3,7 @@
     make scenes        # or: python -m figures.scene_pictures --out docs/scenes
 
 The initial state comes from the task's own reset (seed 0, MJX-Warp); the
-picture is drawn with MuJoCo's OpenGL renderer (MUJOCO_GL=egl headless), at a
+picture is drawn with MuJoCo's OpenGL renderer (offscreen, envs/headless.py), at a
 higher resolution than the policy's images.
 """
 
@@ -12,14 +12,13 @@ from __future__ import annotations
 import argparse
 import os
 
-os.environ.setdefault("MUJOCO_GL", "egl")
+import envs  # first: it picks MUJOCO_GL (envs/headless.py) before mujoco is imported
 
 import imageio.v3 as iio  # noqa: E402
 import jax  # noqa: E402
 import mujoco  # noqa: E402
 import numpy as np  # noqa: E402
 
-import envs  # noqa: E402
 from envs import rollout  # noqa: E402
 
 

@@ -52,4 +52,6 @@ def main(argv=None) -> int:
 
 
 if __name__ == "__main__":
+  from skillplug_jax import startup
+  startup.prepare_process()  # the kernels inherit this process's environment: make's allocator setting
   sys.exit(main())

@@ -86,15 +86,33 @@ def cmd_pretrain(args) -> int:
   from skillplug_jax import experiment
   from skillplug_jax.train import config, loop
 
-  if args.distributed:  # several hosts: coordinator and process ids come from the cluster's env
-    jax.distributed.initialize()
+  explicit = {"--coordinator": args.coordinator or None, "--num-processes": args.num_processes,
+              "--process-id": args.process_id}
+  if not args.distributed and any(v is not None for v in explicit.values()):
+    raise ValueError(f"{', '.join(k for k, v in explicit.items() if v is not None)} need --distributed")
+  if args.distributed:  # before anything runs on a device
+    # Several processes (hosts) train one run: coordinator, process count and this process's
+    # id as given, the rest from the cluster's environment (SLURM, Open MPI, TPU). On CPU the
+    # cross-process all-reduce is jax's default CPU collectives implementation (gloo over TCP).
+    jax.distributed.initialize(coordinator_address=explicit["--coordinator"],
+                               num_processes=args.num_processes, process_id=args.process_id)
   exp = experiment.get(args.config)
   cfg = config.override(exp.train_config(args.policy, seed=0),
                         [f"taskset={args.taskset}", f"seed={args.seed}", f"backend={args.backend}"]
                         + list(args.set or []))
   if args.workdir:
     cfg = config.override(cfg, [f"workdir={args.workdir}"])
-  run = loop.train(cfg, record=experiment.record(exp, args.policy, experiment.directory(args.config)))
+  if args.distributed:  # the dataset
+    from skillplug_jax.data import demos as demo_data
+    dcfg = loop.dataset_config(cfg)
+    if not demo_data.dataset_path(dcfg, cfg.data_dir).exists():  # not one writer per process: made beforehand
+      images = f"--image-size {dcfg.image_size[0]}" if dcfg.images else "--state-only"
+      raise ValueError(f"{demo_data.dataset_path(dcfg, cfg.data_dir)} is missing: with --distributed, generate "
+                       f"it first, on the filesystem every host reads: skillplug demos --taskset {dcfg.taskset} "
+                       f"--demos {dcfg.demos} {images} --seed {dcfg.seed} --backend {dcfg.backend} "
+                       f"--out {cfg.data_dir}")
+  run = loop.train(cfg, progress=jax.process_index() == 0,  # one progress bar, from the first process
+                   record=experiment.record(exp, args.policy, experiment.directory(args.config)))
   print(f"checkpoint: {run / 'checkpoints'} (config and normalisation statistics beside it in {run})")
   return 0
 
@@ -190,7 +208,13 @@ def build_parser() -> argparse.ArgumentParser:
                  help="override a config field, e.g. --set lr=3e-4 --set model.hidden=128 --set loss.sd=0.5")
   t.add_argument("--workdir", default="", help="run directory (default results/runs/<taskset>_<policy>_<preset>_seed<seed>)")
   _backend_flag(t, "physics of the demonstrations generated when missing (recorded in the run's config)")
-  t.add_argument("--distributed", action="store_true", help="call jax.distributed.initialize() (multi-host)")
+  t.add_argument("--distributed", action="store_true",
+                 help="train with several processes (hosts) on one run directory: jax.distributed.initialize(), "
+                      "settings from the cluster's environment (SLURM, Open MPI) unless given below")
+  t.add_argument("--coordinator", default="", metavar="HOST:PORT",
+                 help="with --distributed: the address of process 0, which every process connects to")
+  t.add_argument("--num-processes", type=int, default=None, metavar="N", help="with --distributed: processes in all")
+  t.add_argument("--process-id", type=int, default=None, metavar="I", help="with --distributed: this process's id, 0..N-1")
   t.set_defaults(fn=cmd_pretrain)
 
   v = sub.add_parser("eval", help="closed-loop success rates of trained policies (paired trials)",
@@ -230,14 +254,21 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv=None) -> int:
+  if argv is None:  # the command line, not a call: glibc's allocator setting as make exports it
+    from skillplug_jax import startup
+    startup.prepare_process()
   args = build_parser().parse_args(argv)
   for flag in ("episodes", "demos", "batch", "trials"):
     if getattr(args, flag, 1) < 1:
       raise SystemExit(f"skillplug: --{flag} must be >= 1")
   import envs
   envs.quiet_warp()
+  from skillplug_jax.train.preemption import Stopped
   try:
     return args.fn(args)
+  except Stopped as e:  # SIGTERM/SIGINT during training (`Preempted`): its step is checkpointed
+    print(f"skillplug: {e}", file=sys.stderr)
+    return e.exit_code
   except ValueError as e:  # bad names, shapes, datasets, checkpoints: one clear line
     print(f"skillplug: error: {e}", file=sys.stderr)
     return 2

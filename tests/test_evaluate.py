@@ -251,6 +251,19 @@ def test_trials_are_paired_across_policies(monkeypatch):
   assert not np.allclose(demo, direct)
 
 
+def test_a_longer_evaluation_begins_with_the_shorter_one():
+  """Closed loop (the scripted expert): the first trials of a 7-trial evaluation in batches of 3
+  are those of a 4-trial one in one batch, outcome for outcome; progress comes per batch."""
+  controller = expert_controller(envs.make(TASK, num_envs=1, backend="mujoco"))
+  done = []
+  long = protocol.evaluate_task(TASK, controller, trials=7, batch=3, backend="mujoco", on_batch=done.append)
+  short = protocol.evaluate_task(TASK, controller, trials=4, batch=4, backend="mujoco")
+  assert done == [3, 3, 1]
+  for key in ("trial_success", "trial_queries", "trial_success_step"):
+    assert long[key][:4] == short[key], key
+  assert len(long["trial_success_step"]) == 7 and len(set(long["trial_success_step"])) > 1  # trials differ
+
+
 def test_success_table_mean_and_standard_error():
   rates = {"ACT": {"jujube_pick": [0.5, 0.7, 0.9], "kiwi_place": [0.1, 0.1, 0.4]},
            "ACT+SkillPlug": {"jujube_pick": [1.0], "kiwi_place": [0.5]}}

@@ -38,8 +38,15 @@ def trial_keys(seed: int, trials: int) -> jax.Array:
 def evaluate_task(task: str, controller: Controller, trials: int, seed: int = EVAL_SEED, batch: int = 50,
                   render: bool = False, image_size=(64, 64), videos: int = 0,  # image_size: (H, W)
                   video_dir: str | Path | None = None, backend: str = "auto",
-                  routing_file: str | Path | None = None) -> dict:
+                  routing_file: str | Path | None = None, on_batch=None) -> dict:
   """Success rate and query counts of one controller on one task.
+
+  Memory is bounded by `batch`, not `trials`: `batch` environments run at a
+  time and only per-trial outcomes (and, for ACT+SkillPlug, routing weights)
+  are kept between batches. Trial i's start depends on (seed, i) alone, so
+  the first trials of a longer evaluation are those of a shorter one, at any
+  batch size. on_batch(n): called after each batch with the trials it added
+  (a progress bar's update).
 
   Besides the means, `trial_success` and `trial_queries` keep trial i's
   outcome and query count (trial i: the same start for every policy), for
@@ -72,6 +79,8 @@ def evaluate_task(task: str, controller: Controller, trials: int, seed: int = EV
       _write_videos(parts[-1].frames, Path(video_dir or "."), task)
     else:
       parts.append(run_episodes(benv, controller, k, devices))
+    if on_batch is not None:
+      on_batch(min(n_env, trials - start))
   take = lambda f: np.concatenate([getattr(p, f) for p in parts])[:trials]  # noqa: E731
   success, nan, queries = take("success"), take("nan"), take("queries")
   overflow = take("overflow") if all(p.overflow is not None for p in parts) else np.zeros(trials, np.int32)
@@ -87,6 +96,7 @@ def evaluate_task(task: str, controller: Controller, trials: int, seed: int = EV
               mean_routing=(np.nanmean(np.concatenate([r.reshape(-1, r.shape[-1]) for r in routing]), axis=0)
                             .tolist() if routing else None),
               trial_success=success.tolist(), trial_queries=queries.tolist(),
+              trial_success_step=take("first_success_step").tolist(),
               **({"diagnostics": routing_diagnostics(routing, trials)} if routing else {}))
 
 
@@ -163,8 +173,8 @@ def evaluate_runs(run_dirs: Sequence[str | Path], tasks: Sequence[str], trials: 
   backend = envs.resolve_backend(backend)
   for run, _, cfg in loaded:
     warn_if_other_renderer(run, cfg, backend)
-  bar = tqdm(total=len(run_dirs) * len(tasks), desc="eval", unit="task", file=sys.stderr,
-             disable=not progress)
+  bar = tqdm(total=len(run_dirs) * len(tasks) * trials, desc="eval", unit="trial", file=sys.stderr,
+             disable=not progress, dynamic_ncols=True)
   for run, controller, cfg in loaded:
     row = groups.row_fields(cfg, records[run])
     for task in tasks:
@@ -172,10 +182,9 @@ def evaluate_runs(run_dirs: Sequence[str | Path], tasks: Sequence[str], trials: 
       t0 = time.time()
       r = evaluate_task(task, controller, trials, seed, batch, render=cfg.model.use_images,
                         image_size=cfg.model.image_size, videos=videos, video_dir=Path(video_dir) / Path(run).name,
-                        backend=backend)
+                        backend=backend, on_batch=bar.update)
       r.update(run=str(run), **row, trained_on=cfg.backend, wall_s=round(time.time() - t0, 1))
       results.append(r)
-      bar.update(1)
   bar.close()
   return dict(trials=trials, seed=seed, query_every=query_every, device=str(jax.devices()[0]),
               backend=backend, results=results, **tables.summarise(results, tasks))

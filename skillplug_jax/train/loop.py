@@ -8,7 +8,9 @@ and the loader's batch is a function of (seed, step), so a run resumed from
 its last checkpoint continues exactly as if it had not been stopped. A damaged
 last checkpoint is set aside, with a warning, and the run resumes from the
 newest intact one. A run directory has one writer: a second process training
-into it stops at once, naming the first (`dir_lock`).
+into it stops at once, naming the first (`dir_lock`). SIGTERM or SIGINT
+checkpoints the step under way and raises `preemption.Preempted`: the same
+command resumes from it, bit for bit.
 """
 
 from __future__ import annotations
@@ -16,6 +18,7 @@ from __future__ import annotations
 import contextlib
 import dataclasses
 import math
+import signal
 import sys
 import time
 from pathlib import Path
@@ -35,7 +38,7 @@ from skillplug_jax.data import loader as data_loader
 from skillplug_jax.experiment import RunRecord
 from skillplug_jax.model import freeze
 from skillplug_jax.model.policy import Policy
-from skillplug_jax.train import checkpoint, run_files
+from skillplug_jax.train import checkpoint, preemption, run_files
 from skillplug_jax.train.config import TrainConfig
 from skillplug_jax.train.scalars import ScalarLog
 
@@ -207,32 +210,39 @@ def _train(cfg: TrainConfig, progress: bool, stop_after: int | None, record: Run
   bar = tqdm(total=total, initial=start, desc=f"train {cfg.model.policy}", unit="step", file=sys.stderr,
              disable=not progress, dynamic_ncols=True)
   window, t_window, wait0, last_loss = [], time.perf_counter(), loader.wait_s, math.nan
+  stop = preemption.StopRequests()  # SIGTERM/SIGINT: finish this step, checkpoint it, stop
   try:
-    for step, batch in zip(range(start, end), loader.iterate(start_step=start, num_steps=end - start)):
-      state, metrics = step_fn(state, batch)
-      window.append(metrics)
-      done = step + 1
-      if done % cfg.log_every == 0 or done == end or done % cfg.ckpt_every == 0:
-        host = jax.device_get(window)  # one transfer for the whole window
-        means = {k: float(np.mean([m[k] for m in host])) for k in host[0]}
-        if not all(math.isfinite(v) for v in means.values()):
-          bad = {k: v for k, v in means.items() if not math.isfinite(v)}
-          raise TrainingError(
-              f"non-finite loss between steps {done - len(window)} and {done}: {bad}; the last good "
-              f"checkpoint (step {mngr.latest_step()}) in {run_dir / 'checkpoints'} is kept")
-        dt = time.perf_counter() - t_window
-        scalars = {(f"diag/{k[5:]}" if k.startswith("diag_") else f"loss/{k}"): v for k, v in means.items() if k != "grad_norm"}
-        scalars.update({"train/grad_norm": means["grad_norm"],
-                        "train/epoch": done * cfg.batch_size / data.num_episodes,
-                        "train/steps_per_s": len(window) / dt,
-                        "train/data_wait_frac": (loader.wait_s - wait0) / dt})
-        log.write(done, scalars)
-        last_loss = means["loss"]
-        bar.set_postfix(loss=f"{last_loss:.4f}", epoch=f"{scalars['train/epoch']:.1f}")
-        window, t_window, wait0 = [], time.perf_counter(), loader.wait_s
-      if done % cfg.ckpt_every == 0 or done == total:
-        checkpoint.save(mngr, done, state)
-      bar.update(1)
+    with stop:
+      for step, batch in zip(range(start, end), loader.iterate(start_step=start, num_steps=end - start)):
+        state, metrics = step_fn(state, batch)
+        window.append(metrics)
+        done = step + 1
+        stopping = stop.agreed()
+        if done % cfg.log_every == 0 or done == end or done % cfg.ckpt_every == 0 or stopping:
+          host = jax.device_get(window)  # one transfer for the whole window
+          means = {k: float(np.mean([m[k] for m in host])) for k in host[0]}
+          if not all(math.isfinite(v) for v in means.values()):
+            bad = {k: v for k, v in means.items() if not math.isfinite(v)}
+            raise TrainingError(
+                f"non-finite loss between steps {done - len(window)} and {done}: {bad}; the last good "
+                f"checkpoint (step {mngr.latest_step()}) in {run_dir / 'checkpoints'} is kept")
+          dt = time.perf_counter() - t_window
+          scalars = {(f"diag/{k[5:]}" if k.startswith("diag_") else f"loss/{k}"): v
+                     for k, v in means.items() if k != "grad_norm"}
+          scalars.update({"train/grad_norm": means["grad_norm"],
+                          "train/epoch": done * cfg.batch_size / data.num_episodes,
+                          "train/steps_per_s": len(window) / dt,
+                          "train/data_wait_frac": (loader.wait_s - wait0) / dt})
+          log.write(done, scalars)
+          last_loss = means["loss"]
+          bar.set_postfix(loss=f"{last_loss:.4f}", epoch=f"{scalars['train/epoch']:.1f}")
+          window, t_window, wait0 = [], time.perf_counter(), loader.wait_s
+        if done % cfg.ckpt_every == 0 or done == total or stopping:
+          checkpoint.save(mngr, done, state)
+        bar.update(1)
+        if stopping:
+          mngr.wait_until_finished()
+          raise preemption.Preempted(stop.signum or signal.SIGTERM, done, run_dir)
   finally:
     bar.close()
     log.close()
@@ -242,4 +252,3 @@ def _train(cfg: TrainConfig, progress: bool, stop_after: int | None, record: Run
     print(f"run {run_dir}: step {int(state.step)}/{total} on {n_dev} device(s), last loss {last_loss:.4f}; "
           f"checkpoints in {run_dir / 'checkpoints'}", file=sys.stderr)
   return run_dir
-

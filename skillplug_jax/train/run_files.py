@@ -18,6 +18,8 @@ import dataclasses
 import json
 from pathlib import Path
 
+import jax
+
 from skillplug_jax import experiment
 from skillplug_jax.atomic_json import write_json_atomic
 from skillplug_jax.train import config as train_config
@@ -33,7 +35,10 @@ RESUMABLE_CHANGES = {"workdir", "log_every", "ckpt_every", "keep_checkpoints", "
 
 
 def write_run_files(run_dir: Path, cfg, stats: dict, record: experiment.RunRecord | None = None) -> None:
-  """config.json (with `record`, when given) and norm_stats.json, each written atomically."""
+  """config.json (with `record`, when given) and norm_stats.json, each written atomically; of
+  several processes training one run (jax.distributed), the first writes them."""
+  if jax.process_index() != 0:
+    return
   run_dir.mkdir(parents=True, exist_ok=True)
   payload = train_config.to_dict(cfg)
   if record is not None:
