@@ -154,7 +154,8 @@ def cmd_fewshot(args) -> int:
 
   runs = [r for part in args.runs for r in part.split(",") if r]
   out = fewshot.adapt_and_evaluate(runs, args.taskset, args.demos, args.trials, args.seed, args.batch,
-                                   steps=args.steps, backend=args.backend)
+                                   steps=args.steps, backend=args.backend,
+                                   marginal_terms=False if args.no_marginal_terms else None)
   print(report.write(out, f"few-shot, {args.demos} demos per task, {args.trials} paired trials per task",
                      args.out))
   return 0
@@ -244,6 +245,9 @@ def build_parser() -> argparse.ArgumentParser:
   f.add_argument("--steps", type=int, default=None,
                  help="fine-tuning steps (default: the few-shot steps the source run recorded of its config, "
                       "e.g. quick 500; 0 trains the source's epochs)")
+  f.add_argument("--no-marginal-terms", action="store_true",
+                 help="fine-tune without the source's loss.usage and loss.load_balance (terms on the batch's "
+                      "mean routing; ours, issue 27); fine-tunes go to RUN_fewshot_no_marginal_terms/")
   f.add_argument("--trials", type=int, default=50)
   f.add_argument("--seed", type=int, default=1000)
   f.add_argument("--batch", type=int, default=50)

@@ -36,7 +36,7 @@ from skillplug_jax.train.config import TrainConfig
 _GROUPS = validation.each(validation.one_of(GROUPS), distinct=True)
 _FEWSHOT_RULES = dict(taskset=validation.text(), demos=validation.count(1),
                       steps=validation.count(0, " (0: the source run's own `epochs`)"),
-                      trainable_act=_GROUPS, trainable_skillplug=_GROUPS)
+                      trainable_act=_GROUPS, trainable_skillplug=_GROUPS, marginal_terms=validation.flag())
 # Each (policy, seed) is one run directory: a policy or seed given twice would train it twice at once.
 _EXPERIMENT_RULES = dict(
     policies=validation.each(validation.one_of(POLICIES), nonempty=True, distinct=True),
@@ -71,6 +71,10 @@ class FewShot:
   steps: int = 500  # fine-tuning steps per task; 0: the source run's own `epochs`
   trainable_act: tuple[str, ...] = ("action_head",)
   trainable_skillplug: tuple[str, ...] = ("action_head", "router")
+  # Ours (issue 27): whether the fine-tune keeps the source's terms on the batch's mean routing
+  # (loss.usage, loss.load_balance). They ask a batch to spread over the skills, which suits
+  # pretraining's batch of many tasks; a few-shot batch holds one task. False: both weigh 0.
+  marginal_terms: bool = True
 
   def __post_init__(self):
     validation.check(self, "fewshot.", _FEWSHOT_RULES)

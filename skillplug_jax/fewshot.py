@@ -28,23 +28,28 @@ def fewshot_config(source: TrainConfig, source_dir: Path, task: str, plan: FewSh
   """The fine-tune of `source` on `task` (one of `plan.taskset`) by the few-shot protocol `plan`:
   the one the source run recorded (`run_files.read_record`), or one the caller chose."""
   steps = plan.steps
+  loss, folder = source.loss, f"{source_dir}_fewshot"
+  if not plan.marginal_terms:  # one task's batch: no pressure to spread it over the skills
+    loss = dataclasses.replace(loss, usage=0.0, load_balance=0.0)
+    folder += "_no_marginal_terms"  # beside the default protocol's fine-tunes, not resuming them
   return dataclasses.replace(
       source, taskset=task, data_taskset=plan.taskset, demos=plan.demos, init_from=str(source_dir),
-      trainable=plan.trainable(source.model.policy), max_steps=steps,
+      trainable=plan.trainable(source.model.policy), max_steps=steps, loss=loss,
       warmup_steps=min(source.warmup_steps, max(steps // 10, 0)),
       ckpt_every=max(steps, 1) if steps else source.ckpt_every,
-      workdir=str(Path(f"{source_dir}_fewshot") / task))
+      workdir=str(Path(folder) / task))
 
 
 def adapt_and_evaluate(source_runs: Sequence[str | Path], taskset: str = "discoverse_fewshot4",
                        demos: int = 10, trials: int = 50, seed: int = protocol.EVAL_SEED,
                        batch: int = 50, steps: int | None = None, progress: bool = True,
-                       backend: str = "auto") -> dict:
+                       backend: str = "auto", marginal_terms: bool | None = None) -> dict:
   """Fine-tune every source run on every task of `taskset`, evaluate, tabulate.
 
   Rows are the source runs' training configurations (`groups`): the
   few-shot settings are the same for every row of one call, and the seeds
-  of one source configuration are one row.
+  of one source configuration are one row. `steps` and `marginal_terms`:
+  None keeps what the source run recorded (`FewShot`).
   """
   tasks = envs.taskset(taskset)
   results = []
@@ -52,8 +57,9 @@ def adapt_and_evaluate(source_runs: Sequence[str | Path], taskset: str = "discov
     src = Path(src)
     source, record = run_files.read_config(src), run_files.read_record(src)
     label = groups.policy_label(source)
-    chosen = dataclasses.replace(record.fewshot, taskset=taskset, demos=demos,
-                                 steps=record.fewshot.steps if steps is None else steps)
+    chosen = dataclasses.replace(
+        record.fewshot, taskset=taskset, demos=demos, steps=record.fewshot.steps if steps is None else steps,
+        marginal_terms=record.fewshot.marginal_terms if marginal_terms is None else marginal_terms)
     for task in tasks:
       cfg = fewshot_config(source, src, task, chosen)
       if progress:
@@ -65,7 +71,8 @@ def adapt_and_evaluate(source_runs: Sequence[str | Path], taskset: str = "discov
       r = protocol.evaluate_task(task, controller, trials, seed, batch, render=cfg.model.use_images,
                                  image_size=cfg.model.image_size, backend=backend)
       r.update(run=str(run), source=str(src), **groups.row_fields(source, record),
-               trainable=list(cfg.trainable), steps=cfg.max_steps, trained_on=source.backend)
+               trainable=list(cfg.trainable), steps=cfg.max_steps, trained_on=source.backend,
+               fewshot_loss=dict(usage=cfg.loss.usage, load_balance=cfg.loss.load_balance))
       results.append(r)
   return dict(taskset=taskset, demos=demos, trials=trials, seed=seed, backend=envs.resolve_backend(backend),
               results=results,

@@ -54,6 +54,7 @@ REJECTED = [
     ("train", "keep_checkpoints", 0),
     ("fewshot", "taskset", ""), ("fewshot", "demos", 0), ("fewshot", "steps", -1),
     ("fewshot", "trainable_act", ("head",)), ("fewshot", "trainable_skillplug", ("router", "router")),
+    ("fewshot", "marginal_terms", "no"),
     ("experiment", "policies", ()), ("experiment", "policies", ("act", "act")),
     ("experiment", "policies", ("diffusion",)), ("experiment", "seeds", ()), ("experiment", "seeds", (0, 0)),
     ("experiment", "seeds", (-1,)), ("experiment", "trials", 0), ("experiment", "eval_seed", -1),

@@ -81,6 +81,19 @@ def test_fewshot_protocol_comes_from_the_source_runs_record(tmp_path):
   assert (mine.max_steps, mine.trainable) == (3, ("router",))
 
 
+def test_fewshot_without_the_marginal_terms_zeroes_them_alone_in_its_own_folder(tmp_path):
+  source = train_config.override(experiment.preset("quick", "skillplug"),
+                                 ["loss.usage=0.5", "loss.load_balance=0.2", "loss.router_z=0.1"])
+  kept = fewshot.fewshot_config(source, tmp_path / "src", "block_place", experiment.FewShot())
+  assert kept.loss == source.loss  # the default protocol: the source's loss as it was
+  dropped = fewshot.fewshot_config(source, tmp_path / "src", "block_place",
+                                   experiment.FewShot(marginal_terms=False))
+  assert (dropped.loss.usage, dropped.loss.load_balance) == (0.0, 0.0)
+  assert dataclasses.replace(dropped.loss, usage=0.5, load_balance=0.2) == source.loss  # nothing else
+  assert dropped.workdir != kept.workdir and Path(dropped.workdir).name == "block_place"
+  assert dataclasses.replace(dropped, loss=kept.loss, workdir=kept.workdir) == kept
+
+
 def test_cosine_schedule_warms_up_then_decays_to_zero():
   cfg = train_config.override(experiment.preset("quick"), ["lr=1e-3", "warmup_steps=10", "lr_schedule=cosine"])
   lr = loop.learning_rate(cfg, 110)
