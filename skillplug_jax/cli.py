@@ -155,7 +155,8 @@ def cmd_fewshot(args) -> int:
   runs = [r for part in args.runs for r in part.split(",") if r]
   out = fewshot.adapt_and_evaluate(runs, args.taskset, args.demos, args.trials, args.seed, args.batch,
                                    steps=args.steps, backend=args.backend,
-                                   marginal_terms=False if args.no_marginal_terms else None)
+                                   marginal_terms=False if args.no_marginal_terms else None,
+                                   trainable=args.trainable.split(",") if args.trainable else None)
   print(report.write(out, f"few-shot, {args.demos} demos per task, {args.trials} paired trials per task",
                      args.out))
   return 0
@@ -252,6 +253,10 @@ def build_parser() -> argparse.ArgumentParser:
   f.add_argument("--seed", type=int, default=1000)
   f.add_argument("--batch", type=int, default=50)
   f.add_argument("--out", default="", help="write OUT.json, OUT.md, OUT.csv, OUT.queries.csv, OUT.queries_paired.csv")
+  f.add_argument("--trainable", default="",
+                 help="parameter groups to fine-tune, comma-separated, for either policy (default: those the "
+                      "source run recorded), e.g. action_head,router,interactor (the groups: docs/training.md); "
+                      "other than the recorded ones, fine-tunes go to RUN_fewshot_train-<groups>/")
   _backend_flag(f, "physics of evaluation (the few-shot demos follow the source run's backend)")
   f.set_defaults(fn=cmd_fewshot)
   return p

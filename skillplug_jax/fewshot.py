@@ -24,11 +24,12 @@ from skillplug_jax.train import loop, run_files
 from skillplug_jax.train.config import TrainConfig
 
 
-def fewshot_config(source: TrainConfig, source_dir: Path, task: str, plan: FewShot) -> TrainConfig:
+def fewshot_config(source: TrainConfig, source_dir: Path, task: str, plan: FewShot, variant: str = "") -> TrainConfig:
   """The fine-tune of `source` on `task` (one of `plan.taskset`) by the few-shot protocol `plan`:
-  the one the source run recorded (`run_files.read_record`), or one the caller chose."""
+  the one the source run recorded (`run_files.read_record`), or one the caller chose. `variant`
+  names a departure from the recorded protocol: its fine-tunes go to `RUN_fewshot_<variant>/`."""
   steps = plan.steps
-  loss, folder = source.loss, f"{source_dir}_fewshot"
+  loss, folder = source.loss, f"{source_dir}_fewshot" + (f"_{variant}" if variant else "")
   if not plan.marginal_terms:  # one task's batch: no pressure to spread it over the skills
     loss = dataclasses.replace(loss, usage=0.0, load_balance=0.0)
     folder += "_no_marginal_terms"  # beside the default protocol's fine-tunes, not resuming them
@@ -43,13 +44,16 @@ def fewshot_config(source: TrainConfig, source_dir: Path, task: str, plan: FewSh
 def adapt_and_evaluate(source_runs: Sequence[str | Path], taskset: str = "discoverse_fewshot4",
                        demos: int = 10, trials: int = 50, seed: int = protocol.EVAL_SEED,
                        batch: int = 50, steps: int | None = None, progress: bool = True,
-                       backend: str = "auto", marginal_terms: bool | None = None) -> dict:
+                       backend: str = "auto", marginal_terms: bool | None = None,
+                       trainable: Sequence[str] | None = None) -> dict:
   """Fine-tune every source run on every task of `taskset`, evaluate, tabulate.
 
   Rows are the source runs' training configurations (`groups`): the
   few-shot settings are the same for every row of one call, and the seeds
-  of one source configuration are one row. `steps` and `marginal_terms`:
-  None keeps what the source run recorded (`FewShot`).
+  of one source configuration are one row. `steps`, `marginal_terms` and
+  `trainable` (the parameter groups fine-tuned, for either policy): None
+  keeps what the source run recorded (`FewShot`). Groups other than the
+  recorded ones fine-tune into `RUN_fewshot_train-<groups>/`.
   """
   tasks = envs.taskset(taskset)
   results = []
@@ -60,8 +64,12 @@ def adapt_and_evaluate(source_runs: Sequence[str | Path], taskset: str = "discov
     chosen = dataclasses.replace(
         record.fewshot, taskset=taskset, demos=demos, steps=record.fewshot.steps if steps is None else steps,
         marginal_terms=record.fewshot.marginal_terms if marginal_terms is None else marginal_terms)
+    variant = ""
+    if trainable is not None and tuple(sorted(trainable)) != chosen.trainable(source.model.policy):
+      chosen = dataclasses.replace(chosen, trainable_act=tuple(trainable), trainable_skillplug=tuple(trainable))
+      variant = "train-" + "+".join(sorted(trainable))
     for task in tasks:
-      cfg = fewshot_config(source, src, task, chosen)
+      cfg = fewshot_config(source, src, task, chosen, variant)
       if progress:
         print(f"few-shot {label} (seed {source.seed}) on {task}: training {sorted(cfg.trainable)}",
               file=sys.stderr)

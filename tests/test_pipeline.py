@@ -94,6 +94,28 @@ def test_fewshot_without_the_marginal_terms_zeroes_them_alone_in_its_own_folder(
   assert dataclasses.replace(dropped, loss=kept.loss, workdir=kept.workdir) == kept
 
 
+def test_fewshot_with_other_trainable_groups_trains_those_in_their_own_folder(tmp_path, monkeypatch):
+  source = dataclasses.replace(experiment.preset("quick", "skillplug"), workdir=str(tmp_path / "src"))
+  run_files.write_run_files(source.run_dir, source, {})
+  trained = []
+  monkeypatch.setattr(loop, "train", lambda cfg, **k: trained.append(cfg) or Path(cfg.workdir))
+  monkeypatch.setattr(fewshot, "load_controller", lambda run: (None, None))
+  monkeypatch.setattr(protocol, "warn_if_other_renderer", lambda *a: None)
+  monkeypatch.setattr(protocol, "evaluate_task", lambda task, *a, **k: dict(task=task))
+  monkeypatch.setattr(fewshot.tables, "summarise", lambda results, tasks: {})
+  out = fewshot.adapt_and_evaluate([source.run_dir], "block_place", progress=False,
+                                   trainable=["router", "interactor", "action_head"])
+  [cfg] = trained
+  assert cfg.trainable == ("action_head", "interactor", "router")
+  assert Path(cfg.workdir).parent.name == "src_fewshot_train-action_head+interactor+router"
+  assert out["results"][0]["trainable"] == ["action_head", "interactor", "router"]
+  trained.clear()  # the recorded groups: the recorded protocol's folder
+  fewshot.adapt_and_evaluate([source.run_dir], "block_place", progress=False, trainable=["router", "action_head"])
+  assert Path(trained[0].workdir).parent.name == "src_fewshot"
+  with pytest.raises(ValueError, match="trainable"):
+    fewshot.adapt_and_evaluate([source.run_dir], "block_place", progress=False, trainable=["head"])
+
+
 def test_cosine_schedule_warms_up_then_decays_to_zero():
   cfg = train_config.override(experiment.preset("quick"), ["lr=1e-3", "warmup_steps=10", "lr_schedule=cosine"])
   lr = loop.learning_rate(cfg, 110)
