@@ -5,6 +5,9 @@
     state = env.reset(keys)          # keys: [256, 2] PRNG keys
     state = env.step(state, actions) # actions: [256, 7] joint-position targets
 
+`appearance="shifted"` draws the cameras' images in per-episode colours and
+light (`envs.appearance`) over unchanged physics.
+
 `backend`: "mujoco" (MuJoCo's C engine, the CPU backend), "mjx-warp" (MJX on
 MuJoCo Warp, for accelerators) or "auto" (MJX-Warp when JAX sees a GPU).
 """
@@ -17,6 +20,7 @@ headless.choose_gl()  # first: MuJoCo reads MUJOCO_GL once, when it is imported
 
 import jax.numpy as jnp  # noqa: E402
 
+from envs import appearance as appearance_module  # noqa: E402
 from envs import batched, mujoco_batch  # noqa: E402
 from envs.batched import BatchedEnv  # noqa: E402
 from envs.env import BACKENDS, EnvConfig, TabletopEnv, resolve_backend  # noqa: E402
@@ -95,22 +99,26 @@ def renderer_of(backend: str) -> str:
 
 
 def make(name: str, num_envs: int = 1, render: bool = False, image_size=(64, 64),
-         backend: str = "auto", devices: tuple | None = None, **config) -> BatchedEnv | MujocoBatchEnv:
+         backend: str = "auto", devices: tuple | None = None, appearance: str = "default",
+         **config) -> BatchedEnv | MujocoBatchEnv:
   """A batch of `num_envs` environments of task `name` (per device, when rendering on `devices`).
 
   image_size: (H, W) of both cameras' images, as everywhere in the project.
+  appearance: "default", or "shifted": the cameras see other colours and
+  light, drawn per environment from its reset key (`envs.appearance`).
   """
   if num_envs < 1:
     raise ValueError(f"num_envs must be >= 1, got {num_envs}")
+  appearance_module.check(appearance)
   env = task_class(name)(EnvConfig(backend=resolve_backend(backend), num_envs=num_envs, **config))
-  return batch_of(env, num_envs, render=render, image_size=image_size, devices=devices)
+  return batch_of(env, num_envs, render=render, image_size=image_size, devices=devices, appearance=appearance)
 
 
 def batch_of(env: TabletopEnv, num_envs: int, render: bool = False, image_size=(64, 64),
-             devices: tuple | None = None) -> BatchedEnv | MujocoBatchEnv:
+             devices: tuple | None = None, appearance: str = "default") -> BatchedEnv | MujocoBatchEnv:
   """A batch of `num_envs` copies of `env` on the backend it was made for."""
   if env.backend == "mujoco":
     if devices is not None and len(devices) > 1:
       raise ValueError("the 'mujoco' backend runs on the CPU's threads: it takes no devices")
-    return MujocoBatchEnv(env, num_envs, render=render, image_size=image_size)
-  return BatchedEnv(env, num_envs, render=render, image_size=image_size, devices=devices)
+    return MujocoBatchEnv(env, num_envs, render=render, image_size=image_size, appearance=appearance)
+  return BatchedEnv(env, num_envs, render=render, image_size=image_size, devices=devices, appearance=appearance)

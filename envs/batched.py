@@ -8,11 +8,14 @@ a single CPU device, so on a CPU the shards would share one context and race.
 
 from __future__ import annotations
 
+import functools
+
 import jax
 import jax.numpy as jnp
 from brax.envs.wrappers.training import EpisodeWrapper, VmapWrapper
 from mujoco import mjx
 
+from envs import appearance as appearances
 from envs.env import TabletopEnv
 from envs.robot import CAMERAS
 
@@ -24,13 +27,16 @@ class BatchedEnv:
 
   With `render=True`, obs also holds `side_rgb` and `wrist_rgb` (uint8,
   [B, H, W, 3], `image_size` = (H, W)) from `mjx.render`; otherwise no image
-  is made (state-only mode).
+  is made (state-only mode). appearance="shifted" draws each environment in
+  its own look (`envs.appearance`, from its reset key, kept in
+  state.info["appearance"]) through the batched model fields Warp's renderer
+  reads per world; the physics is the same.
   """
 
   backend = "mjx-warp"
 
   def __init__(self, env: TabletopEnv, num_envs: int, render: bool = False, image_size=(64, 64),
-               devices: tuple | None = None):
+               devices: tuple | None = None, appearance: str = "default"):
     if env.config.backend != "mjx-warp":
       raise ValueError(f"BatchedEnv runs MJX-Warp; the environment was made for {env.config.backend!r}")
     self.env = env
@@ -39,6 +45,8 @@ class BatchedEnv:
     self.num_envs = num_envs
     self.render = render
     self.image_size = tuple(image_size)
+    self.appearance = appearances.check(appearance)
+    self._looks = appearances.looks_fn(env.mj_model) if render and appearance == "shifted" else None
     self._env = VmapWrapper(EpisodeWrapper(env, env.episode_length, action_repeat=1))
     self._ctx = None
     if render:
@@ -62,7 +70,10 @@ class BatchedEnv:
   def reset(self, keys: jax.Array):
     if keys.shape[0] != self.num_envs:
       raise ValueError(f"got {keys.shape[0]} reset keys for {self.num_envs} environments")
-    return self._with_images(self._env.reset(keys))
+    state = self._env.reset(keys)
+    if self._looks is not None:
+      state = state.replace(info={**state.info, "appearance": self._looks(keys)})
+    return self._with_images(state)
 
   def step(self, state, actions: jax.Array):
     if actions.shape != (self.num_envs, self.env.action_size):
@@ -79,12 +90,17 @@ class BatchedEnv:
     mx = self.env.mjx_model
     ctx = self._ctx.pytree()
 
-    def one(d):
+    def one(m, d):
       d = mjx.refit_bvh(mx, d, ctx)
-      rgb, _, d = mjx.render(mx, d, ctx)
+      rgb, _, d = mjx.render(m, d, ctx)
       return rgb, d
 
-    rgb, data = jax.vmap(one)(state.pipeline_state)
+    looks = state.info.get("appearance")
+    if looks is None:
+      rgb, data = jax.vmap(functools.partial(one, mx))(state.pipeline_state)
+    else:  # the look's fields batched over worlds, the rest of the model shared
+      axes = jax.tree.map(lambda _: None, mx).tree_replace({f: 0 for f in looks})
+      rgb, data = jax.vmap(one, in_axes=(axes, 0))(mx.tree_replace(looks), state.pipeline_state)
     obs = dict(state.obs)
     for cam, cid in zip(CAMERAS, self._cam_ids):
       img = mjx.get_rgb(ctx, cid, rgb)

@@ -38,6 +38,7 @@ from brax.envs.wrappers.training import EpisodeWrapper, VmapWrapper
 from flax import struct
 from mujoco import batch as mj_batch
 
+from envs import appearance as appearances
 from envs.env import SOLVER_LIMIT_BITS, TabletopEnv, clipped_ctrl
 from envs.headless import RendererError, renderer_error
 from envs.robot import CAMERAS
@@ -133,13 +134,15 @@ class MujocoBatchEnv:
   [B, H, W, 3]) drawn by `mujoco.Renderer` (OpenGL; offscreen through EGL or
   OSMesa, as envs/headless.py picks MUJOCO_GL), one renderer per worker thread.
   A renderer that cannot start raises `envs.headless.RendererError` here.
+  appearance="shifted" draws each environment in its own look (`envs.appearance`,
+  from its reset key, kept in state.info["appearance"]); the physics is the same.
   """
 
   backend = "mujoco"
   devices = None
 
   def __init__(self, env: TabletopEnv, num_envs: int, render: bool = False, image_size=(64, 64),
-               nthread: int = 0):
+               nthread: int = 0, appearance: str = "default"):
     if env.config.backend != "mujoco":
       raise ValueError(f"MujocoBatchEnv needs an environment made for the 'mujoco' backend, "
                        f"not {env.config.backend!r}")
@@ -148,6 +151,8 @@ class MujocoBatchEnv:
     self.render = render
     self.image_size = tuple(image_size)
     self.renderer = RENDERER if render else None
+    self.appearance = appearances.check(appearance)
+    self._looks = appearances.looks_fn(env.mj_model) if render and appearance == "shifted" else None
     self._batch = mj_batch.Batch(env.mj_model, nsim=num_envs, nthread=nthread)
     self._saved = {f: self._batch.bind(f) for f in SAVED_FIELDS}
     self._derived = {f: self._batch.bind(f) for f in DERIVED_FIELDS + ("solver_niter",)}
@@ -173,6 +178,8 @@ class MujocoBatchEnv:
     self._saved["time"][:] = CLOCK_START
     self._batch.forward()
     state = self._first(self._physics(np.zeros(self.num_envs, np.int32)))
+    if self._looks is not None:
+      state = state.replace(info={**state.info, "appearance": self._looks(keys)})
     return self._with_images(state, np.arange(self.num_envs))
 
   def step(self, state: State, actions: jax.Array) -> State:
@@ -211,7 +218,9 @@ class MujocoBatchEnv:
     """Draw the simulations `ids` anew; the others keep their last images."""
     if not self.render:
       return state
-    self._images = self._cameras.render(self._saved["qpos"], ids, self._images)
+    looks = state.info.get("appearance")
+    looks = None if looks is None else jax.device_get(looks)
+    self._images = self._cameras.render(self._saved["qpos"], ids, self._images, looks)
     return state.replace(obs={**state.obs, **{f"{c}_rgb": jnp.asarray(self._images[c]) for c in CAMERAS}})
 
 
@@ -219,7 +228,8 @@ class CameraRenderer:
   """Both cameras of a batch of states, drawn by `mujoco.Renderer` on worker threads.
 
   An OpenGL context belongs to the thread that made it, so each worker thread
-  makes, uses and closes its own renderer; `close` (or garbage collection)
+  makes, uses and closes its own renderer, on its own copy of the model (a
+  look is written into it before each environment's draw); `close` (or garbage collection)
   asks the workers to do so. The offscreen buffer is the image size, without
   multisampling. The constructor waits until every worker has its renderer:
   one that cannot start (no display for GLFW, no EGL) raises RendererError
@@ -229,10 +239,10 @@ class CameraRenderer:
 
   def __init__(self, model: mujoco.MjModel, image_size, nthread: int):
     self._size = tuple(image_size)
-    render_model = _render_model(model, *self._size)
     self._jobs = [queue.SimpleQueue() for _ in range(max(1, nthread))]
     started = queue.SimpleQueue()
-    self._threads = [threading.Thread(target=_render_worker, args=(render_model, self._size, jobs, started),
+    self._threads = [threading.Thread(target=_render_worker,
+                                      args=(_render_model(model, *self._size), self._size, jobs, started),
                                       daemon=True, name="mujoco-render")
                      for jobs in self._jobs]  # the workers hold no reference to self, so it can be collected
     # Under GLFW (MUJOCO_GL unset or glfw), one renderer first, then the others:
@@ -257,14 +267,17 @@ class CameraRenderer:
       self.close()
       raise renderer_error(errors[0]) from errors[0]
 
-  def render(self, qpos: np.ndarray, ids: np.ndarray, out: dict | None = None) -> dict:
-    """Draw simulations `ids` (from their qpos rows) into `out` ({camera: [B, H, W, 3]})."""
+  def render(self, qpos: np.ndarray, ids: np.ndarray, out: dict | None = None, looks: dict | None = None) -> dict:
+    """Draw simulations `ids` (from their qpos rows) into `out` ({camera: [B, H, W, 3]}).
+
+    looks: {field: [B, ...]} (`envs.appearance.LOOK_FIELDS`), row i the model's
+    visual fields for simulation i; None draws the model as it is."""
     if out is None:
       out = {c: np.zeros((qpos.shape[0],) + self._size + (3,), np.uint8) for c in CAMERAS}
     done = queue.SimpleQueue()
     chunks = [c for c in np.array_split(ids, len(self._jobs)) if c.size]
     for jobs, chunk in zip(self._jobs, chunks):
-      jobs.put((qpos, chunk, out, done))
+      jobs.put((qpos, chunk, out, looks, done))
     errors = [e for e in (self._wait(done) for _ in chunks) if e is not None]
     if errors:
       raise errors[0]
@@ -297,17 +310,24 @@ def _render_worker(model: mujoco.MjModel, size, jobs: queue.SimpleQueue, started
       renderer.scene.flags[getattr(mujoco.mjtRndFlag, flag)] = 0
     data = mujoco.MjData(model)
     cam_ids = [model.camera(c).id for c in CAMERAS]
+    own = {f: getattr(model, f)[None].copy() for f in appearances.LOOK_FIELDS}  # the model's look, as row 0
   except Exception as e:  # noqa: BLE001  handed to the caller's thread
     if renderer is not None:
       renderer.close()
     started.put(e)
     return
   started.put(None)
+  shifted = False  # the model holds another look than its own
   try:
     while (job := jobs.get()) is not None:
-      qpos, ids, out, done = job
+      qpos, ids, out, looks, done = job
       try:
+        if looks is None and shifted:
+          _set_look(model, own, 0)
+        shifted = looks is not None
         for i in ids:
+          if looks is not None:
+            _set_look(model, looks, i)
           data.qpos[:] = qpos[i]
           mujoco.mj_kinematics(model, data)
           mujoco.mj_camlight(model, data)
@@ -319,6 +339,12 @@ def _render_worker(model: mujoco.MjModel, size, jobs: queue.SimpleQueue, started
         done.put(e)
   finally:
     renderer.close()
+
+
+def _set_look(model: mujoco.MjModel, look: dict, i) -> None:
+  """Write row `i` of each field of `look` into the model (only rendering reads these fields)."""
+  for f, v in look.items():
+    getattr(model, f)[:] = v[i]
 
 
 def _render_model(model: mujoco.MjModel, h: int, w: int) -> mujoco.MjModel:

@@ -126,8 +126,9 @@ def cmd_eval(args) -> int:
   video_dir = args.video_dir or (f"{args.out}_videos" if args.out else "videos")
   out = protocol.evaluate_runs(runs, tasks, args.trials, seed=args.seed, batch=args.batch,
                                query_every=args.query_every, videos=args.videos, video_dir=video_dir,
-                               backend=args.backend)
-  print(report.write(out, f"{args.trials} paired trials per task (seed {args.seed})", args.out))
+                               backend=args.backend, appearance=args.appearance)
+  shift = ", appearance shifted" if args.appearance != "default" else ""
+  print(report.write(out, f"{args.trials} paired trials per task (seed {args.seed}{shift})", args.out))
   if args.videos:
     print(f"videos of the first {args.videos} trials per task: {video_dir}/<run>/<task>_trialNN.gif")
   return 0
@@ -235,6 +236,9 @@ def build_parser() -> argparse.ArgumentParser:
   v.add_argument("--videos", type=int, default=0, help="GIFs (side camera) of the first N trials per task")
   v.add_argument("--video-dir", default="", help="where the GIFs go (default OUT_videos, or ./videos)")
   _backend_flag(v, "physics the policies are evaluated on")
+  v.add_argument("--appearance", default="default", choices=("default", "shifted"),
+                 help="shifted: each trial's cameras see other table, object and light colours, drawn from "
+                      "(seed, trial); the physics and trials are the default's (ours, docs/evaluation.md)")
   v.set_defaults(fn=cmd_eval)
 
   f = sub.add_parser("fewshot", help="adapt multi-task runs to unseen tasks from a few demos, then evaluate",
@@ -249,14 +253,14 @@ def build_parser() -> argparse.ArgumentParser:
   f.add_argument("--no-marginal-terms", action="store_true",
                  help="fine-tune without the source's loss.usage and loss.load_balance (terms on the batch's "
                       "mean routing; ours, issue 27); fine-tunes go to RUN_fewshot_no_marginal_terms/")
-  f.add_argument("--trials", type=int, default=50)
-  f.add_argument("--seed", type=int, default=1000)
-  f.add_argument("--batch", type=int, default=50)
-  f.add_argument("--out", default="", help="write OUT.json, OUT.md, OUT.csv, OUT.queries.csv, OUT.queries_paired.csv")
   f.add_argument("--trainable", default="",
                  help="parameter groups to fine-tune, comma-separated, for either policy (default: those the "
                       "source run recorded), e.g. action_head,router,interactor (the groups: docs/training.md); "
                       "other than the recorded ones, fine-tunes go to RUN_fewshot_train-<groups>/")
+  f.add_argument("--trials", type=int, default=50)
+  f.add_argument("--seed", type=int, default=1000)
+  f.add_argument("--batch", type=int, default=50)
+  f.add_argument("--out", default="", help="write OUT.json, OUT.md, OUT.csv, OUT.queries.csv, OUT.queries_paired.csv")
   _backend_flag(f, "physics of evaluation (the few-shot demos follow the source run's backend)")
   f.set_defaults(fn=cmd_fewshot)
   return p

@@ -3,7 +3,10 @@
 Trial i of a task starts from `rollout.reset_keys(seed, trials)[i]` for every
 policy evaluated, so two policies are compared on the same initial states.
 The default seed (1000) is far from the demonstrations' (0): evaluation
-starts are not training starts.
+starts are not training starts. appearance="shifted" (ours) draws trial i's
+cameras in its own colours and light, drawn from its reset key
+(`envs.appearance`): the same trials, paired with the default appearance's,
+with only the pixels changed.
 """
 
 from __future__ import annotations
@@ -38,7 +41,7 @@ def trial_keys(seed: int, trials: int) -> jax.Array:
 def evaluate_task(task: str, controller: Controller, trials: int, seed: int = EVAL_SEED, batch: int = 50,
                   render: bool = False, image_size=(64, 64), videos: int = 0,  # image_size: (H, W)
                   video_dir: str | Path | None = None, backend: str = "auto",
-                  routing_file: str | Path | None = None, on_batch=None) -> dict:
+                  routing_file: str | Path | None = None, on_batch=None, appearance: str = "default") -> dict:
   """Success rate and query counts of one controller on one task.
 
   Memory is bounded by `batch`, not `trials`: `batch` environments run at a
@@ -56,15 +59,17 @@ def evaluate_task(task: str, controller: Controller, trials: int, seed: int = EV
   `rollout.local_devices_for`). videos > 0 writes the side
   camera of the first `videos` trials to `video_dir/<task>_trialNN.gif`.
   routing_file: write every query's routing weights there (`write_routing`;
-  ACT+SkillPlug only).
+  ACT+SkillPlug only). appearance: "default" or "shifted" (`envs.appearance`:
+  trial i's look depends on (seed, i) alone; videos show it too).
   """
   backend = envs.resolve_backend(backend)
+  envs.appearance.check(appearance)
   devices = local_devices_for(min(batch, trials), render=render or videos > 0, backend=backend)
   ndev = 1 if devices is None else len(devices)
   per_device = -(-min(batch, trials) // ndev)
   n_env = per_device * ndev
   benv = envs.make(task, num_envs=per_device, render=render, image_size=image_size, devices=devices,
-                   backend=backend)
+                   backend=backend, appearance=appearance)
   keys = trial_keys(seed, trials)
   parts: list[EpisodeResults] = []
   for start in range(0, trials, n_env):
@@ -74,7 +79,7 @@ def evaluate_task(task: str, controller: Controller, trials: int, seed: int = EV
     frames = min(videos, per_device) if start == 0 else 0
     if frames:  # the first batch again with the side camera on (a state policy renders nothing)
       video_env = benv if render else envs.make(task, num_envs=per_device, render=True, image_size=VIDEO_SIZE,
-                                                devices=devices, backend=backend)
+                                                devices=devices, backend=backend, appearance=appearance)
       parts.append(run_episodes(video_env, controller, k, devices, frames=frames))
       _write_videos(parts[-1].frames, Path(video_dir or "."), task)
     else:
@@ -88,7 +93,7 @@ def evaluate_task(task: str, controller: Controller, trials: int, seed: int = EV
   if routing_file is not None and routing:
     write_routing(routing_file, task, routing, trials, success, take("first_success_step"), queries)
   return dict(task=task, abbr=benv.env.abbr, trials=trials, seed=seed, devices=ndev, backend=backend,
-              renderer=benv.renderer,
+              renderer=benv.renderer, appearance=appearance,
               success_rate=float(success.mean()), successes=int(success.sum()),
               nan_episodes=int(nan.sum()), solver_limit_episodes=solver_limit_counts(overflow),
               mean_queries_success=float(queries[success].mean()) if success.any() else None,
@@ -157,15 +162,16 @@ def _write_videos(frames: list, out: Path, task: str, fps: int = 20) -> None:
 
 def evaluate_runs(run_dirs: Sequence[str | Path], tasks: Sequence[str], trials: int, seed: int = EVAL_SEED,
                   batch: int = 50, query_every: int = 1, progress: bool = True, videos: int = 0,
-                  video_dir: str | Path = "videos", backend: str = "auto") -> dict:
+                  video_dir: str | Path = "videos", backend: str = "auto", appearance: str = "default") -> dict:
   """Every run on every task, and the tables (`tables.summarise`).
 
   Runs whose training configurations differ only in the seed (and where
   they were written) are one row's training seeds; any other difference
   makes another row, named by its overrides against the run's record
   (`run_files.read_record`). videos > 0: GIFs of each run's first trials in
-  video_dir/<run name>/.
+  video_dir/<run name>/. appearance: "default" or "shifted" (`evaluate_task`).
   """
+  envs.appearance.check(appearance)  # before any run is loaded
   results = []
   # Every run is loaded first: a missing or damaged checkpoint fails before any evaluation.
   loaded = [(run, *load_controller(run, query_every=query_every)) for run in run_dirs]
@@ -182,12 +188,12 @@ def evaluate_runs(run_dirs: Sequence[str | Path], tasks: Sequence[str], trials: 
       t0 = time.time()
       r = evaluate_task(task, controller, trials, seed, batch, render=cfg.model.use_images,
                         image_size=cfg.model.image_size, videos=videos, video_dir=Path(video_dir) / Path(run).name,
-                        backend=backend, on_batch=bar.update)
+                        backend=backend, on_batch=bar.update, appearance=appearance)
       r.update(run=str(run), **row, trained_on=cfg.backend, wall_s=round(time.time() - t0, 1))
       results.append(r)
   bar.close()
   return dict(trials=trials, seed=seed, query_every=query_every, device=str(jax.devices()[0]),
-              backend=backend, results=results, **tables.summarise(results, tasks))
+              backend=backend, appearance=appearance, results=results, **tables.summarise(results, tasks))
 
 
 def warn_if_other_renderer(run, cfg, backend: str) -> None:
