@@ -112,7 +112,8 @@ def untrained_controller():
   m = dataclasses.replace(preset("quick").model, policy="act")
   params = loop.init_params(TrainConfig(preset="quick", model=m), jax.random.PRNGKey(0))
   stats = {"action": {"mean": list(robot.HOME_QPOS), "std": [0.01] * 7},
-           "joint_pos": {"mean": [0.0] * 7, "std": [1.0] * 7}}
+           "joint_pos": {"mean": [0.0] * 7, "std": [1.0] * 7},
+           "object_state": {"mean": [0.0] * envs.OBJECT_STATE_DIM, "std": [1.0] * envs.OBJECT_STATE_DIM}}
   return policy_controller(m, params, stats, name="untrained act")
 
 

@@ -64,7 +64,8 @@ def bench(task: str, preset: str, policy: str, batch: int, steps: int, repeats: 
   keys = env_rollout.reset_keys(0, batch)
   params = loop.init_params(cfg, jax.random.PRNGKey(0))
   stats = {"action": {"mean": list(robot.HOME_QPOS), "std": [0.01] * 7},
-           "joint_pos": {"mean": [0.0] * 7, "std": [1.0] * 7}}
+           "joint_pos": {"mean": [0.0] * 7, "std": [1.0] * 7},
+           "object_state": {"mean": [0.0] * envs.OBJECT_STATE_DIM, "std": [1.0] * envs.OBJECT_STATE_DIM}}
   controller = policy_controller(m, params, stats)
 
   out = {}
