@@ -35,6 +35,7 @@ REJECTED = [
     ("model", "dropout", NAN), ("model", "positions", "both"), ("model", "embed_init_std", -0.02),
     ("model", "pre_norm", "true"), ("model", "cvae_zero_init", None), ("model", "normalize_object_state", 0),
     ("model", "latent_dim", 0), ("model", "cvae_enc_layers", -1), ("model", "backbone_width", 0),
+    ("model", "backbone_stages", ()), ("model", "backbone_stages", (2, 0, 2)),
     ("model", "num_skills", 0), ("model", "num_skills", 2.5), ("model", "num_skills", True),
     ("model", "skill_latent_dim", 0), ("model", "alignment_dim", 0), ("model", "interactor", "attention"),
     ("model", "router_temperature", 0.0), ("model", "router_temperature", INF), ("model", "plug_site", "middle"),

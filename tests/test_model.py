@@ -20,7 +20,7 @@ from skillplug_jax import losses
 from skillplug_jax.data import normalization
 from skillplug_jax import experiment
 from skillplug_jax.model import GROUPS, ModelConfig, Policy, masked_optimizer, param_groups, trainable_mask
-from skillplug_jax.model.act import ActionHead, CVAEEncoder, Encoder, num_tokens
+from skillplug_jax.model.act import ActionHead, CVAEEncoder, Encoder, feature_map_size, num_tokens
 from skillplug_jax.model.config import LEGACY_DEFAULTS
 
 
@@ -216,6 +216,26 @@ def test_resnet18_feature_map():
                           jnp.zeros((1, 32, 32, 3), jnp.uint8))
   assert "batch_stats" not in params
   assert sum(1 for k in params["params"] if "block" in k) == 8  # [2, 2, 2, 2]
+  # fewer stages keep a finer map (and fewer channels); fewer blocks, fewer parameters
+  small = ResNet18(width=8, stage_sizes=(1, 1, 1))
+  out = jax.eval_shape(lambda x: small.init_with_output(jax.random.key(0), x)[0],
+                       jax.ShapeDtypeStruct((3, 64, 64, 3), jnp.uint8))
+  assert out.shape == (3, 4, 4, 32)
+  params = jax.eval_shape(small.init, jax.random.key(0), jnp.zeros((1, 64, 64, 3), jnp.uint8))
+  assert sorted(k for k in params["params"] if "block" in k) == ["stage1_block1", "stage2_block1", "stage3_block1"]
+
+
+def test_backbone_stages_reach_the_image_tokens():
+  """model.backbone_stages sets the backbone the policy builds: 3 stages give 4x4 cells a camera."""
+  cfg = dataclasses.replace(tiny(images=True), image_size=(64, 64), backbone_stages=(1, 1, 1))
+  batch = make_batch(cfg)
+  p = jax.eval_shape(Policy(cfg).init, jax.random.key(0), batch)["params"]
+  assert sorted(k for k in p["encoder"]["backbone"] if "block" in k) == [
+      "stage1_block1", "stage2_block1", "stage3_block1"]
+  assert feature_map_size(cfg) == (4, 4) and num_tokens(cfg) == 2 + 2 * 16
+  tokens, _ = jax.eval_shape(lambda: Encoder(cfg).init_with_output(
+      jax.random.key(0), batch, jnp.zeros((B, cfg.latent_dim)))[0])
+  assert tokens.shape[1] == num_tokens(cfg)
 
 
 @pytest.mark.parametrize("positions", ["input", "qk"])

@@ -66,9 +66,10 @@ def _embed_init(config: ModelConfig):
 
 
 def feature_map_size(config: ModelConfig) -> tuple[int, int]:
-  """Spatial size of the ResNet-18 output: the input shrinks by 2 five times."""
+  """Spatial size of the backbone's output: the stem and its pool halve the
+  input, each stage after the first halves it again (five times for ResNet-18)."""
   h, w = config.image_size
-  for _ in range(5):
+  for _ in range(1 + len(config.backbone_stages)):
     h, w = -(-h // 2), -(-w // 2)
   return h, w
 
@@ -142,7 +143,7 @@ class Encoder(nn.Module):
     cfg, dt = self.config, self.config.compute_dtype
     n_cam = len(cfg.cameras)
     images = jnp.concatenate([obs[f"{cam}_rgb"] for cam in cfg.cameras], axis=0)
-    fmap = ResNet18(cfg.backbone_width, dtype=dt, name="backbone")(images)
+    fmap = ResNet18(cfg.backbone_width, tuple(cfg.backbone_stages), dtype=dt, name="backbone")(images)
     _, h, w, _ = fmap.shape
     x = nn.Dense(cfg.hidden, dtype=dt, name="image_proj")(fmap)  # ACT's 1x1 conv
     x = x.reshape(n_cam, batch, h * w, cfg.hidden).transpose(1, 0, 2, 3)

@@ -46,7 +46,8 @@ _RULES = dict(
     dec_layers=_count(1), decoder_first_layer_only=validation.flag(), dropout=_number(0, 1),
     positions=_one_of(POSITIONS), embed_init_std=_number(0), pre_norm=validation.flag(),
     cvae_zero_init=validation.flag(), normalize_object_state=validation.flag(), latent_dim=_count(1),
-    cvae_enc_layers=_count(0), backbone_width=_count(1), num_skills=_count(1),
+    cvae_enc_layers=_count(0), backbone_width=_count(1),
+    backbone_stages=validation.each(_count(1), nonempty=True), num_skills=_count(1),
     skill_latent_dim=_count(1), alignment_dim=_count(1), interactor=_one_of(INTERACTORS),
     router_temperature=_number(above=0), plug_site=_one_of(PLUG_SITES),
     skill_offset=_one_of(SKILL_OFFSETS), router_input=_one_of(ROUTER_INPUTS),
@@ -103,6 +104,9 @@ class ModelConfig:
   latent_dim: int = 32  # ACT's CVAE style latent
   cvae_enc_layers: int = 4
   backbone_width: int = 64  # ResNet-18 stem width; stages are 1x, 2x, 4x, 8x
+  # Basic blocks per ResNet stage; (2, 2, 2, 2) is ResNet-18. Fewer stages keep a finer
+  # map (64x64 images: 2x2 cells with 4 stages, 4x4 with 3), fewer blocks cost less.
+  backbone_stages: Tuple[int, ...] = (2, 2, 2, 2)
   num_skills: int = 4  # K
   # Size of the per-skill posterior latent z_k. Kept small (ACT's style latent
   # size) so the posterior is a real bottleneck: W lifts it to `hidden`.

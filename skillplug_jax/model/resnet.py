@@ -108,7 +108,8 @@ class BasicBlock(nn.Module):
 
 
 class ResNet18(nn.Module):
-  """uint8 images [B, H, W, 3] -> feature map [B, H/32, W/32, 8 * width]."""
+  """uint8 images [B, H, W, 3] -> feature map [B, H/2^(n+1), W/2^(n+1), 2^(n-1) * width]
+  for n stages (ResNet-18 with the default four: H/32, 8 * width)."""
   width: int = 64
   stage_sizes: Sequence[int] = STAGE_SIZES
   dtype: jnp.dtype = jnp.float32
