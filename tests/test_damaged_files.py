@@ -235,12 +235,15 @@ def test_evaluation_reads_the_parameters_without_an_optimizer(finished_run, monk
     np.testing.assert_array_equal(np.asarray(y), np.asarray(x))
 
 
-@pytest.mark.parametrize("damage", ["truncated", "one-byte-flip"])
+@pytest.mark.parametrize("damage", ["truncated", "one-byte-flip", "step-metadata"])
 def test_resume_falls_back_to_the_previous_intact_checkpoint(finished_run, data_dir, tmp_path, capsys, damage):
   run, final = finished_run
   run = copy_run(run, tmp_path / "run")
   if damage == "truncated":
     truncate(largest_file(run / "checkpoints" / "6"))
+  elif damage == "step-metadata":  # read by orbax when it opens the directory, before any restore
+    meta = run / "checkpoints" / "6" / "_CHECKPOINT_METADATA"
+    flip_byte(meta, meta.read_bytes().index(b"item_handlers") + 1, 0x01)
   else:  # found only by the checksums: orbax restores most such flips without a word
     bad = largest_array_file(run / "checkpoints" / "6")
     flip_byte(bad, bad.stat().st_size // 2)

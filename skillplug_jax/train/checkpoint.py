@@ -214,13 +214,37 @@ def restore_params(run_dir: Path, like_params):
   return params, step
 
 
+def manager_for_training(run_dir: Path, keep: int = 2) -> tuple[ocp.CheckpointManager, list]:
+  """(manager, [(DamagedCheckpoint, where it went), ...]) for a run that resumes.
+
+  Orbax reads every step's _CHECKPOINT_METADATA when it opens the directory, so
+  a corrupt one stops `manager` before any checkpoint can be restored. Training
+  moves that step aside as `set_aside` does and opens the directory again, so
+  that it resumes from the newest intact checkpoint, as for damaged array files.
+  """
+  moved = []
+  while True:
+    try:
+      return manager(run_dir, keep), moved
+    except DamagedCheckpoint as e:
+      if not e.path.exists() or any(e.path == bad.path for bad, _ in moved):
+        raise  # nothing left to move: not a damaged step's metadata
+      moved.append((DamagedCheckpoint(e.path, e.reason), _move_aside(e.path, run_dir)))  # advice done
+
+
 def set_aside(mngr: ocp.CheckpointManager, damaged: DamagedCheckpoint, run_dir: Path) -> Path:
   """Move a damaged checkpoint to <run>/damaged_checkpoints/<step>[.N] and return where.
 
   Orbax would otherwise keep it as the latest step and skip saving that step
   again; it is moved rather than deleted so that it can still be looked at.
   """
-  src = damaged.path
+  dst = _move_aside(damaged.path, run_dir)
+  mngr.reload()
+  return dst
+
+
+def _move_aside(src: Path, run_dir: Path) -> Path:
+  """Move a step directory to <run>/damaged_checkpoints/<step>[.N] (process 0; all wait)."""
   base = Path(run_dir) / "damaged_checkpoints" / src.name
   dst, n = base, 1
   while dst.exists():
@@ -231,7 +255,6 @@ def set_aside(mngr: ocp.CheckpointManager, damaged: DamagedCheckpoint, run_dir: 
   if jax.process_count() > 1:  # every process must see the move before orbax lists the steps again
     from jax.experimental import multihost_utils
     multihost_utils.sync_global_devices(f"skillplug_set_aside_{src.name}")
-  mngr.reload()
   return dst
 
 

@@ -192,15 +192,17 @@ def _train(cfg: TrainConfig, progress: bool, stop_after: int | None, record: Run
   state = TrainState(jnp.zeros((), jnp.int32), params, tx.init(params))
   state = jax.device_put(state, replicated)
 
-  mngr = checkpoint.manager(run_dir, cfg.keep_checkpoints)
+  mngr, moved = checkpoint.manager_for_training(run_dir, cfg.keep_checkpoints)  # unreadable step metadata
   start = 0
   if mngr.latest_step() is not None:
     run_files.check_resumable(run_dir, cfg)
     record = run_files.stored_record(run_dir) or record  # the record it started with
     state, start, damaged = checkpoint.restore_latest(mngr, state, fallback=True)
-    for bad in damaged:  # set aside, or orbax would skip saving their steps again
-      moved = checkpoint.set_aside(mngr, bad, run_dir)
-      print(f"warning: {bad}; moved it to {moved} and resuming from checkpoint {start}", file=sys.stderr)
+    # set aside, or orbax would skip saving their steps again
+    moved += [(bad, checkpoint.set_aside(mngr, bad, run_dir)) for bad in damaged]
+  for bad, where in moved:
+    print(f"warning: {bad}; moved it to {where} and "
+          + (f"resuming from checkpoint {start}" if start else "training from the start"), file=sys.stderr)
   run_files.write_run_files(run_dir, cfg, data.stats, record)
 
   step_fn = jax.jit(make_train_step(cfg, tx, step_key), donate_argnums=0,
