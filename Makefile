@@ -21,7 +21,7 @@ export MUJOCO_GL ?= egl
 # contention doubled the quick preset's step.) docs/measurements/speed.md.
 export GLIBC_TUNABLES ?= glibc.malloc.hugetlb=1
 
-.PHONY: install test quickstart toy-skills paper-cpu loss-ablation k-sweep notebooks experts demos pretrain fewshot eval bench-envs bench-loader bench-train bench-eval bench-eval-scale bench soak scenes clean
+.PHONY: install test quickstart toy-skills paper-cpu paper-cpu-image loss-ablation k-sweep notebooks experts demos pretrain fewshot eval bench-envs bench-loader bench-train bench-eval bench-eval-scale bench soak scenes clean
 
 install: $(VENV)/.installed
 
@@ -75,6 +75,10 @@ SET ?=
 PUBLISH ?= docs/results/paper_cpu
 paper-cpu: install
 	$(PY) -m experiments.pipeline --config cpu --out $(OUT)/paper_cpu --publish $(PUBLISH) $(SET)
+
+# The same protocol with both cameras (experiments/configs/cpu_image.py; issue 29). Not yet run in full.
+paper-cpu-image: install
+	$(PY) -m experiments.pipeline --config cpu_image --out $(OUT)/paper_cpu_image $(SET)
 
 # The paper's analyses at CPU scale, read against the committed paper-cpu summary (its full-loss,
 # K=4 and ACT rows): the loss ablation (Rec, +KL, +SD; with few-shot) and the K sweep (K=2, 6, 8;
