@@ -44,6 +44,7 @@ class BatchedEnv:
     self.devices = devices  # JAX devices a sharded rendering batch runs on (num_envs each)
     self.num_envs = num_envs
     self.render = render
+    self.render_s = None  # drawn inside the jitted step with the physics: not timed apart
     self.image_size = tuple(image_size)
     self.appearance = appearances.check(appearance)
     self._looks = appearances.looks_fn(env.mj_model) if render and appearance == "shifted" else None

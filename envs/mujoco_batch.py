@@ -163,6 +163,7 @@ class MujocoBatchEnv:
     self._ctrl = _clipped_ctrl
     self._cameras = CameraRenderer(env.mj_model, self.image_size, self._batch.nthread) if render else None
     self._images = None
+    self.render_s = 0.0  # wall seconds spent drawing the cameras so far (the rendering share, issue 29)
 
   @property
   def episode_length(self) -> int:
@@ -218,10 +219,13 @@ class MujocoBatchEnv:
     """Draw the simulations `ids` anew; the others keep their last images."""
     if not self.render:
       return state
+    t0 = time.perf_counter()
     looks = state.info.get("appearance")
     looks = None if looks is None else jax.device_get(looks)
     self._images = self._cameras.render(self._saved["qpos"], ids, self._images, looks)
-    return state.replace(obs={**state.obs, **{f"{c}_rgb": jnp.asarray(self._images[c]) for c in CAMERAS}})
+    images = {f"{c}_rgb": jnp.asarray(self._images[c]) for c in CAMERAS}
+    self.render_s += time.perf_counter() - t0
+    return state.replace(obs={**state.obs, **images})
 
 
 class CameraRenderer:

@@ -3,6 +3,7 @@
 import dataclasses
 import json
 import textwrap
+import time
 from typing import NamedTuple
 
 import imageio.v3 as iio
@@ -262,6 +263,20 @@ def test_a_longer_evaluation_begins_with_the_shorter_one():
   for key in ("trial_success", "trial_queries", "trial_success_step"):
     assert long[key][:4] == short[key], key
   assert len(long["trial_success_step"]) == 7 and len(set(long["trial_success_step"])) > 1  # trials differ
+
+
+def test_an_evaluation_times_its_rendering():
+  """render_s: the wall seconds spent drawing both cameras, within the evaluation's own time;
+  0 when nothing is drawn (the rendering share of an evaluation, issue 29)."""
+  controller = expert_controller(envs.make(TASK, num_envs=1, backend="mujoco"))
+  t0 = time.monotonic()
+  drawn = protocol.evaluate_task(TASK, controller, trials=2, batch=2, backend="mujoco", render=True,
+                                 image_size=(16, 16))
+  wall = time.monotonic() - t0
+  plain = protocol.evaluate_task(TASK, controller, trials=2, batch=2, backend="mujoco")
+  assert 0 < drawn["render_s"] < wall, (drawn["render_s"], wall)
+  assert plain["render_s"] == 0.0
+  assert drawn["trial_success"] == plain["trial_success"]  # drawing changes nothing the expert does
 
 
 def test_success_table_mean_and_standard_error():

@@ -10,6 +10,7 @@ subprocess with the variable removed from its environment.
 
 from __future__ import annotations
 
+import json
 import os
 import subprocess
 import sys
@@ -56,6 +57,8 @@ def test_demos_render_images_with_mujoco_gl_unset(tmp_path):
   d = loader.load_demonstrations(tmp_path / cfg.name, images=True)
   for cam in ("side", "wrist"):
     assert d.steps[f"{cam}_rgb"].std() > 10, cam  # drawn scenes, not blank buffers
+  recorded = json.loads((tmp_path / cfg.name / "metadata.json").read_text())["per_task"]["jujube_pick"]
+  assert 0 < recorded["render_s"] < recorded["wall_s"]  # the rendering share of recording (issue 29)
 
 
 @pytest.fixture(scope="module")

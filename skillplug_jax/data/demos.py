@@ -163,7 +163,8 @@ def _generate_task(cfg: DemoConfig, task: str, bar) -> tuple[list[Episode], dict
   info = dict(reset_index=np.asarray(indices, np.int64), attempts=attempts, kept=len(kept),
               expert_success_rate=successes / attempts if attempts else 0.0, nan_episodes=nans,
               **{f"{k}_limit_episodes": v for k, v in envs.env.solver_limit_counts(overflow).items()},
-              wall_s=round(wall, 2), mean_length=float(np.mean([len(e.action) for e in kept])))
+              wall_s=round(wall, 2), **({} if benv.render_s is None else {"render_s": round(benv.render_s, 2)}),
+              mean_length=float(np.mean([len(e.action) for e in kept])))
   return kept, info
 
 

@@ -72,6 +72,7 @@ def evaluate_task(task: str, controller: Controller, trials: int, seed: int = EV
                    backend=backend, appearance=appearance)
   keys = trial_keys(seed, trials)
   parts: list[EpisodeResults] = []
+  video_env = None
   for start in range(0, trials, n_env):
     k = keys[start:start + n_env]
     if k.shape[0] < n_env:  # last partial batch: pad with repeats, drop them after
@@ -93,7 +94,7 @@ def evaluate_task(task: str, controller: Controller, trials: int, seed: int = EV
   if routing_file is not None and routing:
     write_routing(routing_file, task, routing, trials, success, take("first_success_step"), queries)
   return dict(task=task, abbr=benv.env.abbr, trials=trials, seed=seed, devices=ndev, backend=backend,
-              renderer=benv.renderer, appearance=appearance,
+              renderer=benv.renderer, appearance=appearance, render_s=_render_seconds(benv, None if video_env is benv else video_env),
               success_rate=float(success.mean()), successes=int(success.sum()),
               nan_episodes=int(nan.sum()), solver_limit_episodes=solver_limit_counts(overflow),
               mean_queries_success=float(queries[success].mean()) if success.any() else None,
@@ -103,6 +104,13 @@ def evaluate_task(task: str, controller: Controller, trials: int, seed: int = EV
               trial_success=success.tolist(), trial_queries=queries.tolist(),
               trial_success_step=take("first_success_step").tolist(),
               **({"diagnostics": routing_diagnostics(routing, trials)} if routing else {}))
+
+
+def _render_seconds(*benvs) -> float | None:
+  """Wall seconds the environments spent drawing cameras (the rendering share of an evaluation);
+  None where a backend draws inside its jitted step (MJX), so that it cannot be timed apart."""
+  times = [b.render_s for b in benvs if b is not None and b.render]
+  return None if any(t is None for t in times) else round(sum(times), 2)
 
 
 def routing_diagnostics(parts: Sequence[np.ndarray], trials: int) -> dict:
