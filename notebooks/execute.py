@@ -2,6 +2,7 @@
 
     make notebooks                                    # on docs/results/paper_cpu
     python notebooks/execute.py --results DIR a.ipynb # on another published pipeline run
+    python notebooks/execute.py --results DIR --into DIR/notebooks   # keep the committed ones as they are
 
 A notebook reads the folder `python -m experiments.pipeline --publish DIR`
 writes; SKILLPLUG_RESULTS tells it which.
@@ -41,13 +42,17 @@ def main(argv=None) -> int:
   p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
   p.add_argument("notebooks", nargs="*", help=f"default: {', '.join(NOTEBOOKS)}")
   p.add_argument("--results", default=None, help="published pipeline folder (default: each notebook's own)")
+  p.add_argument("--into", default=None, metavar="DIR",
+                 help="write the executed notebooks here (default: in place, over the committed ones)")
   args = p.parse_args(argv)
   for name in args.notebooks or [HERE / n for n in NOTEBOOKS]:
     nb = execute(name, args.results)
-    tmp = Path(str(name) + ".tmp")
+    target = Path(args.into) / Path(name).name if args.into else Path(name)
+    target.parent.mkdir(parents=True, exist_ok=True)
+    tmp = Path(str(target) + ".tmp")
     nbformat.write(nb, tmp)
-    os.replace(tmp, name)
-    print(f"executed {name}")
+    os.replace(tmp, target)
+    print(f"executed {name} -> {target}")
   return 0
 
 

@@ -284,9 +284,11 @@ def test_published_summaries_from_before_the_record_still_tabulate(capsys):
 
 @pytest.mark.parametrize("name", ["success_tables.ipynb", "routing.ipynb", "skill_similarity.ipynb",
                                   "fixed_skills.ipynb"])
-def test_notebooks_execute_on_a_published_run(tiny_run, name, monkeypatch):
-  """The committed notebooks run top to bottom on a (smoke-size) published pipeline run and draw."""
+def test_notebooks_execute_on_a_published_run(tiny_run, name, monkeypatch, tmp_path):
+  """The committed notebooks run top to bottom on a (smoke-size) published pipeline run and draw;
+  `--into` writes them elsewhere and leaves the committed notebook as it is."""
   import importlib.util
+  import nbformat
   from pathlib import Path
   from experiments import skill_probes
   published = tiny_run[1] / "published"
@@ -299,7 +301,10 @@ def test_notebooks_execute_on_a_published_run(tiny_run, name, monkeypatch):
   spec = importlib.util.spec_from_file_location("nb_execute", root / "execute.py")
   mod = importlib.util.module_from_spec(spec)
   spec.loader.exec_module(mod)
-  nb = mod.execute(root / name, tiny_run[1] / "published")
+  committed = (root / name).read_bytes()
+  assert mod.main([str(root / name), "--results", str(published), "--into", str(tmp_path / "nb")]) == 0
+  assert (root / name).read_bytes() == committed
+  nb = nbformat.read(tmp_path / "nb" / name, as_version=4)
   outputs = [o for c in nb.cells if c.cell_type == "code" for o in c.outputs]
   assert not [o for o in outputs if o.output_type == "error"]
   assert sum("image/png" in o.get("data", {}) for o in outputs) >= 2
