@@ -46,6 +46,9 @@ class Controller(NamedTuple):
   # Passed into the jitted loop as an argument, not baked in as constants:
   # runs of the same model (training seeds) share one compiled loop.
   weights: Any = ()
+  # (H, W) of the camera images the controller reads; None: it reads no camera (a state policy,
+  # the scripted expert). Evaluation renders at this size whatever its caller asked.
+  image_size: tuple[int, int] | None = None
 
 
 class Trajectory(NamedTuple):

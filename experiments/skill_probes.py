@@ -126,7 +126,8 @@ def demo_states(run: Path, tasks, per_episode: int = 4) -> dict[str, dict]:
   cfg = run_files.read_config(run)
   data = loop.load_data(cfg, generate=False, progress=False)
   data = dataclasses.replace(data, stats=run_files.read_stats(run))
-  ld = data_loader.ChunkLoader(data, 1, chunk=cfg.model.chunk, normalize_object_state=cfg.model.normalize_object_state)
+  ld = data_loader.ChunkLoader(data, 1, chunk=cfg.model.chunk, images=cfg.model.use_images,
+                               normalize_object_state=cfg.model.normalize_object_state)
   out = {}
   for i, task in enumerate(data.tasks):
     if task not in tasks:
@@ -136,7 +137,7 @@ def demo_states(run: Path, tasks, per_episode: int = 4) -> dict[str, dict]:
     frac = np.tile((np.arange(per_episode) + 0.5) / per_episode, len(eps))
     t = np.floor(frac * data.length[ep]).astype(np.int64)
     b = ld.gather(ep, t)
-    out[task] = {k: b[k] for k in ("joint_pos", "object_state")}
+    out[task] = {k: v for k, v in b.items() if k in ("joint_pos", "object_state") or k.endswith("_rgb")}
   return out
 
 

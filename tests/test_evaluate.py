@@ -117,6 +117,25 @@ def test_videos_are_written_as_gifs(tmp_path):
   assert back.shape[0] == 9 and back.shape[1:3] == (16, 16)
 
 
+def test_probe_sheet_stacks_each_modes_gif_in_order(tmp_path):
+  """figures.probe_sheet: a row per routing mode (router, uniform, skill0, skill2, skill10), each
+  the mode's own frames; no GIF of the task is a named error."""
+  from figures import probe_sheet
+  shades = {"skill10": 250, "skill2": 200, "uniform": 50, "router": 0, "skill0": 100}
+  for mode, shade in shades.items():
+    clip = np.full((4, 8, 8, 3), shade, np.uint8)
+    clip[:, 0, 0] = np.arange(4)[:, None] * 60  # the frame's index, in one corner
+    protocol._write_videos([clip], tmp_path / mode, "drawer_open")
+  sheet, modes = probe_sheet.probe_sheet(tmp_path, "drawer_open", frames=4)
+  assert modes == ["router", "uniform", "skill0", "skill2", "skill10"]
+  assert sheet.shape == (5 * 8, 4 * 8, 3)
+  for row, mode in enumerate(modes):
+    assert abs(int(sheet[row * 8 + 4, 4, 0]) - shades[mode]) <= 8, mode  # GIF palettes are lossy
+  assert [int(sheet[0, c * 8, 0]) // 50 for c in range(4)] == [0, 1, 2, 3]  # frames left to right
+  with pytest.raises(ValueError, match="no laptop_close_trial00.gif"):
+    probe_sheet.probe_sheet(tmp_path, "laptop_close")
+
+
 def test_temporal_ensemble_matches_act_formula():
   rng = np.random.default_rng(0)
   chunk, k, steps = 4, 0.3, 7

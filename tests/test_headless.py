@@ -75,10 +75,38 @@ def runs(tmp_path_factory):
   root = tmp_path_factory.mktemp("runs")
   short = ("max_steps=2", "ckpt_every=2", "backend=mujoco")
   state = loop.train(tiny(data, root / "state", "act", *short), progress=False)
-  image = loop.train(tiny(data, root / "image", "act", *short, "model.use_images=true", "model.image_size=16,16",
-                          "model.backbone_width=4"), progress=False)
+  images = ("model.use_images=true", "model.image_size=16,16", "model.backbone_width=4")
+  image = loop.train(tiny(data, root / "image", "act", *short, *images), progress=False)
+  image_sp = loop.train(tiny(data, root / "image_skillplug", "skillplug", *short, *images), progress=False)
   assert not loop.load_params(state)[0].model.use_images and loop.load_params(image)[0].model.use_images
-  return {"state": state, "image": image}
+  return {"state": state, "image": image, "image_skillplug": image_sp}
+
+
+def test_an_image_policy_is_evaluated_on_its_own_cameras_whatever_the_caller_asks(runs):
+  """A caller that does not ask for rendering (the skill probes did not) still shows an image
+  policy its cameras at its own size; a different size is a named error, not a silent rescale."""
+  from skillplug_jax.evaluate import protocol
+  from skillplug_jax.evaluate.policy_controller import load_controller
+  controller, _ = load_controller(runs["image"])
+  assert controller.image_size == (16, 16) and load_controller(runs["state"])[0].image_size is None
+  r = protocol.evaluate_task(TASKS[0], controller, trials=1, batch=1, backend="mujoco")
+  assert r["renderer"] == "mujoco-opengl" and r["render_s"] > 0
+  with pytest.raises(ValueError, match="reads 16x16 camera images; cannot evaluate it on 64x64 ones"):
+    protocol.evaluate_task(TASKS[0], controller, trials=1, render=True, image_size=(64, 64), backend="mujoco")
+
+
+def test_skill_probe_geometry_reads_an_image_policys_cameras(runs):
+  """The probes' demonstration states carry both cameras for an image policy, so that its
+  skills' geometry (and CKA against the image ACT encoder) is computed, not a KeyError."""
+  from experiments import skill_probes
+  states = skill_probes.demo_states(runs["image_skillplug"], TASKS)
+  assert set(states) == set(TASKS)
+  for obs in states.values():
+    assert obs["side_rgb"].shape[1:] == (16, 16, 3) and obs["wrist_rgb"].dtype == np.uint8
+  geo = skill_probes.geometry(runs["image_skillplug"], runs["image"], TASKS)["tasks"]
+  for task in TASKS:
+    assert geo[task]["states"] == len(states[task]["side_rgb"])
+    assert 0.0 <= geo[task]["cka_fused_vs_act"] <= 1.0 + 1e-6, geo[task]
 
 
 @pytest.mark.parametrize("case", ["demos", "eval --videos", "image policy eval"])

@@ -56,7 +56,8 @@ def policy_controller(model: ModelConfig, params, stats: dict, *, query_every: i
   weights = {"params": params,
              "stats": {k: {s: jnp.asarray(stats[k][s], jnp.float32) for s in ("mean", "std")}
                        for k in inputs}}
-  return Controller(init, act, model.num_skills if model.is_skillplug else 0, name, weights)
+  return Controller(init, act, model.num_skills if model.is_skillplug else 0, name, weights,
+                    tuple(model.image_size) if model.use_images else None)
 
 
 @functools.lru_cache(maxsize=None)

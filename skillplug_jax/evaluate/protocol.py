@@ -60,10 +60,18 @@ def evaluate_task(task: str, controller: Controller, trials: int, seed: int = EV
   camera of the first `videos` trials to `video_dir/<task>_trialNN.gif`.
   routing_file: write every query's routing weights there (`write_routing`;
   ACT+SkillPlug only). appearance: "default" or "shifted" (`envs.appearance`:
-  trial i's look depends on (seed, i) alone; videos show it too).
+  trial i's look depends on (seed, i) alone; videos show it too). A
+  controller that reads cameras (`Controller.image_size`) is drawn at its
+  own size whatever `render` says; an `image_size` that differs is an error.
   """
   backend = envs.resolve_backend(backend)
   envs.appearance.check(appearance)
+  needs = getattr(controller, "image_size", None)
+  if needs is not None:  # an image policy: drawn at its own size, even where a caller forgot to ask
+    if render and tuple(image_size) != tuple(needs):
+      raise ValueError(f"this policy reads {needs[0]}x{needs[1]} camera images; "
+                       f"cannot evaluate it on {image_size[0]}x{image_size[1]} ones")
+    render, image_size = True, tuple(needs)
   devices = local_devices_for(min(batch, trials), render=render or videos > 0, backend=backend)
   ndev = 1 if devices is None else len(devices)
   per_device = -(-min(batch, trials) // ndev)
