@@ -83,6 +83,7 @@ class ToyVariant:
 # Every arm the screen knows; --variants picks some (default: DEFAULT_VARIANTS). Names shared with
 # experiments/configs/skill_library.py (the `cpu`-preset screen) mean the same overrides there.
 USAGE = ("loss.usage=0.5",)
+ORACLE = "loss.router_label=1.0"
 CUE = f"model.router_cue_slots={toy.OBJECT_STATE_DIM // toy.SLOT - 3}"  # the slots after the 3 landmarks
 VARIANTS = (
     ToyVariant("act", ("model.policy=act",), "ACT"),
@@ -131,6 +132,17 @@ VARIANTS = (
                "cue to the router only, token per object, squared SD (ours)"),
     ToyVariant("cue_tokens", (CUE, "model.object_tokens=per_object", "model.interactor=skill_tokens",
                               "model.skill_offset=none"), "cue to the router only, token per object, skill tokens (ours)"),
+    # oracle routing (a diagnostic, not a method: it reads the primitive label, in pretraining and
+    # in the few-shot fine-tune): what the library does when the router has the partition the
+    # unsupervised variants never find
+    ToyVariant("oracle", (ORACLE,), "router told the primitive (oracle)"),
+    ToyVariant("oracle_per_object", (ORACLE, "model.object_tokens=per_object"),
+               "router told the primitive, token per object (oracle)"),
+    ToyVariant("oracle_cue_per_object", (ORACLE, CUE, "model.object_tokens=per_object"),
+               "router told the primitive, cue to the router only, token per object (oracle)"),
+    ToyVariant("oracle_cue_per_object_router", (ORACLE, CUE, "model.object_tokens=per_object"),
+               "router told the primitive, cue to the router only, token per object; few-shot: router (oracle)",
+               fewshot=("router",)),
 )
 DEFAULT_VARIANTS = ("act", "skillplug_paper")
 
@@ -280,9 +292,12 @@ def sample_batch(data: dict, key, batch_size: int, chunk: int) -> dict:
   length = data["length"][ep]
   t = jnp.floor(jax.random.uniform(k_t, (batch_size,)) * length).astype(jnp.int32)
   chunk_of = lambda a, s: jax.lax.dynamic_slice_in_dim(a, s, chunk, axis=0)
-  return {"joint_pos": data["joint_pos"][ep, t], "object_state": data["object_state"][ep, t],
-          "actions": jax.vmap(chunk_of)(data["actions"][ep], t),
-          "action_mask": (t[:, None] + jnp.arange(chunk)[None]) < length[:, None]}
+  batch = {"joint_pos": data["joint_pos"][ep, t], "object_state": data["object_state"][ep, t],
+           "actions": jax.vmap(chunk_of)(data["actions"][ep], t),
+           "action_mask": (t[:, None] + jnp.arange(chunk)[None]) < length[:, None]}
+  if "label" in data:  # the step's primitive, which only the oracle variants' loss reads
+    batch["skill_label"] = data["label"][ep, t]
+  return batch
 
 
 def example_batch(model: ModelConfig) -> dict:
@@ -328,7 +343,7 @@ def train(cfg: TrainConfig, params, data: dict, key, steps_per_call: int, desc: 
   calls = max(1, math.ceil(cfg.max_steps / steps_per_call))
   tx, run = _trainer(cfg, steps_per_call)
   state = loop.TrainState(jnp.zeros((), jnp.int32), params, tx.init(params))
-  data = {k: jnp.asarray(v) for k, v in data.items() if k in ("joint_pos", "object_state", "actions", "length")}
+  data = {k: jnp.asarray(v) for k, v in data.items() if k in ("joint_pos", "object_state", "actions", "length", "label")}
   metrics = {}
   for _ in tqdm(range(calls), desc=desc, unit=f"x{steps_per_call}step", file=sys.stderr,
                 disable=not progress, leave=False, dynamic_ncols=True):

@@ -1,7 +1,8 @@
 """The training objective: each term a pure function, then their weighted sum.
 
   total = rec + kl * L_KL + bsa * L_BSA + sd * L_SD + cvae_kl * ACT's CVAE KL
-          (+ usage, load_balance, router_z, distill: ours, zero by default)
+          (+ usage, load_balance, router_z, distill: ours, zero by default;
+           + router_label: a diagnostic that supervises the router with a known label)
   (policy 'act': rec + cvae_kl * ACT's CVAE KL only)
 
 Reductions, fixed here so the weights mean the same thing in every run:
@@ -158,9 +159,24 @@ def router_distillation(router_probs: jnp.ndarray, assignment: jnp.ndarray) -> j
   return -(target * log_r).sum(axis=-1).mean()
 
 
+def router_label_loss(router_probs: jnp.ndarray, labels: jnp.ndarray) -> jnp.ndarray:
+  """-log r_label averaged over the queries whose label names a skill (0 <= label < K).
+
+  Not a method: an oracle that routes by a label the demonstrations carry (the toy's
+  primitive), to measure what the library would do if the router found that
+  partition. Queries with a label outside [0, K) are left out; 0 when there are none.
+  """
+  p = router_probs.astype(jnp.float32)
+  labels = labels.astype(jnp.int32)
+  valid = (labels >= 0) & (labels < p.shape[-1])
+  picked = jnp.take_along_axis(p, jnp.clip(labels, 0, p.shape[-1] - 1)[:, None], axis=-1)[:, 0]
+  nll = -jnp.log(jnp.clip(picked, 1e-12, 1.0))
+  return jnp.sum(jnp.where(valid, nll, 0.0)) / jnp.maximum(valid.sum(), 1)
+
+
 # A weight of 0 turns its term off; a negative one would reward what the term penalises.
 _WEIGHT_RULES = dict({name: validation.number(0) for name in (
-    "rec", "kl", "bsa", "sd", "cvae_kl", "usage", "load_balance", "router_z", "distill")},
+    "rec", "kl", "bsa", "sd", "cvae_kl", "usage", "load_balance", "router_z", "distill", "router_label")},
     sd_kind=validation.one_of(SD_KINDS), sd_usage_weighted=validation.flag())
 
 
@@ -203,6 +219,7 @@ class LossWeights:
   load_balance: float = 0.0  # weight of Switch's K sum_k f_k P_k
   router_z: float = 0.0  # weight of ST-MoE's router z-loss
   distill: float = 1.0  # router -> posterior assignment; only with fusion_source='posterior'
+  router_label: float = 0.0  # oracle diagnostic: -log r_label of the batch's `skill_label`
 
   def __post_init__(self):
     validation.check(self, "loss.", _WEIGHT_RULES)
@@ -243,6 +260,12 @@ def total_loss(outputs: Mapping[str, jnp.ndarray], batch: Mapping[str, jnp.ndarr
       extra["load_balance"] = (weights.load_balance, load_balance(assignment))
     if weights.router_z:
       extra["router_z"] = (weights.router_z, router_z_loss(outputs["router_logits"]))
+    if weights.router_label:
+      if "skill_label" not in batch:
+        raise ValueError("loss.router_label > 0 needs batches with a 'skill_label' (the toy problem's "
+                         "primitive); this dataset has none")
+      extra["router_label"] = (weights.router_label, router_label_loss(outputs["router_probs"],
+                                                                       batch["skill_label"]))
     if "posterior_assignment" in outputs:
       extra["distill"] = (weights.distill, router_distillation(outputs["router_probs"],
                                                                outputs["posterior_assignment"]))

@@ -44,7 +44,7 @@ REJECTED = [
     ("model", "hidden", 100),  # not divisible by the 8 heads
     ("model", "object_tokens", "per_object"),  # with use_images=True
     *[("loss", name, bad) for name in ("rec", "kl", "bsa", "sd", "cvae_kl", "usage", "load_balance", "router_z",
-                                       "distill") for bad in (-0.1, NAN)],
+                                       "distill", "router_label") for bad in (-0.1, NAN)],
     ("loss", "sd", INF), ("loss", "sd_kind", "cos"), ("loss", "sd_usage_weighted", "yes"),
     ("train", "preset", ""), ("train", "taskset", ""), ("train", "demos", 0), ("train", "data_seed", -1),
     ("train", "data_dir", ""), ("train", "backend", "bullet"), ("train", "batch_size", 0), ("train", "lr", 0.0),

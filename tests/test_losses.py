@@ -1,5 +1,6 @@
 """Each loss term against numbers worked out by hand."""
 
+import dataclasses
 import math
 
 import jax
@@ -124,3 +125,25 @@ def test_default_weights_give_acts_objective():
   loss, m = losses.total_loss(_outputs(False), batch)
   assert float(m["rec"]) == pytest.approx(1.0) and float(m["cvae_kl"]) == pytest.approx(0.5)
   assert float(loss) == pytest.approx(1.0 + 10.0 * 0.5)
+
+
+def test_router_label_loss_hand_values_and_labels_outside_the_library_left_out():
+  probs = jnp.array([[0.5, 0.25, 0.25], [0.1, 0.8, 0.1], [0.2, 0.2, 0.6]])
+  assert float(losses.router_label_loss(probs, jnp.array([0, 1, 2]))) == pytest.approx(
+      -(math.log(0.5) + math.log(0.8) + math.log(0.6)) / 3, rel=1e-5)
+  # -1 (an episode's end) and 3 (no such skill) are not counted, in the sum or the mean
+  assert float(losses.router_label_loss(probs, jnp.array([-1, 1, 3]))) == pytest.approx(-math.log(0.8), rel=1e-5)
+  assert float(losses.router_label_loss(probs, jnp.array([-1, -1, 5]))) == 0.0
+
+
+def test_router_label_term_needs_labels_and_is_weighted():
+  batch = dict(actions=jnp.array([[[1.], [7.]]]), action_mask=jnp.array([[True, False]]))
+  w = losses.LossWeights(rec=1.0, kl=0.0, bsa=0.0, sd=0.0, cvae_kl=0.0, router_label=2.0)
+  out = dict(_outputs(True), router_probs=jnp.array([[0.25, 0.75]]))
+  with pytest.raises(ValueError, match="skill_label"):
+    losses.total_loss(out, batch, w)
+  loss, m = losses.total_loss(out, dict(batch, skill_label=jnp.array([1])), w)
+  assert float(m["router_label"]) == pytest.approx(-math.log(0.75), rel=1e-5)
+  assert float(loss) == pytest.approx(float(m["rec"]) + 2.0 * -math.log(0.75), rel=1e-5)
+  _, m0 = losses.total_loss(out, batch, dataclasses.replace(w, router_label=0.0))
+  assert "router_label" not in m0  # off by default: the paper's objective is unchanged
