@@ -78,6 +78,7 @@ class ToyVariant:
   overrides: tuple[str, ...] = ()
   label: str = ""
   fewshot: tuple[str, ...] = ()  # the groups few-shot retrains, when not the paper's (fewshot_groups)
+  fewshot_overrides: tuple[str, ...] = ()  # TrainConfig overrides of the few-shot fine-tune alone
 
 
 # Every arm the screen knows; --variants picks some (default: DEFAULT_VARIANTS). Names shared with
@@ -143,6 +144,10 @@ VARIANTS = (
     ToyVariant("oracle_cue_per_object_router", (ORACLE, CUE, "model.object_tokens=per_object"),
                "router told the primitive, cue to the router only, token per object; few-shot: router (oracle)",
                fewshot=("router",)),
+    # ... and the few-shot router trained by reconstruction alone: the unseen tasks' labels unused
+    ToyVariant("oracle_cue_per_object_router_unlabelled", (ORACLE, CUE, "model.object_tokens=per_object"),
+               "router told the primitive in pretraining only, cue to the router only, token per object; "
+               "few-shot: router, no labels (oracle)", fewshot=("router",), fewshot_overrides=("loss.router_label=0",)),
 )
 DEFAULT_VARIANTS = ("act", "skillplug_paper")
 
@@ -485,6 +490,15 @@ def fewshot_groups(exp: ToyExperiment, cfg: TrainConfig, variant: ToyVariant | N
   return exp.fewshot_act_decoder if decoder else exp.fewshot_act
 
 
+def fewshot_config(exp: ToyExperiment, cfg: TrainConfig, variant: ToyVariant | None = None) -> TrainConfig:
+  """The fine-tune on an unseen task's demonstrations: `cfg` with the variant's few-shot
+  overrides, its trainable groups and the few-shot step count."""
+  groups = fewshot_groups(exp, cfg, variant)
+  return dataclasses.replace(override(cfg, variant.fewshot_overrides) if variant else cfg,
+                             trainable=tuple(sorted(groups)), max_steps=exp.fewshot_steps,
+                             warmup_steps=min(cfg.warmup_steps, exp.fewshot_steps // 10))
+
+
 def run_seed(exp: ToyExperiment, cfg: TrainConfig, seed: int, data: dict, progress: bool,
              variant: ToyVariant | None = None) -> dict:
   """Train one seed of one variant, then evaluate, probe and adapt it."""
@@ -503,9 +517,7 @@ def run_seed(exp: ToyExperiment, cfg: TrainConfig, seed: int, data: dict, progre
     res["fixed_skill_probe"] = fixed_skill_probe(exp, model, params)
   t2 = time.perf_counter()
 
-  groups = fewshot_groups(exp, cfg, variant)
-  fs_cfg = dataclasses.replace(cfg, trainable=tuple(sorted(groups)), max_steps=exp.fewshot_steps,
-                               warmup_steps=min(cfg.warmup_steps, exp.fewshot_steps // 10))
+  fs_cfg = fewshot_config(exp, cfg, variant)
   fs, fs_progress = {}, {}
   for task in toy.UNSEEN:
     adapted, _ = train(fs_cfg, params, data["unseen"][task], jax.random.fold_in(step_key, 1000 + task),
@@ -649,6 +661,7 @@ def finished_variants(exp: ToyExperiment, out: Path) -> dict:
   return {name: entry for name, entry in old.get("variants", {}).items()
           if name in known and entry.get("overrides") == list(known[name].overrides)
           and entry.get("fewshot_groups", []) == list(known[name].fewshot)
+          and entry.get("fewshot_overrides", []) == list(known[name].fewshot_overrides)
           and entry.get("seeds") == list(exp.seeds) and entry.get("status") == "ok"}
 
 
@@ -670,7 +683,7 @@ def run(exp: ToyExperiment, out: Path, progress: bool = True) -> dict:
         print(f"{variant.name}: already in {out / 'summary.json'} with these settings; kept", file=sys.stderr)
       continue
     entry = dict(label=variant.label or variant.name, overrides=list(variant.overrides),
-                 fewshot_groups=list(variant.fewshot))
+                 fewshot_groups=list(variant.fewshot), fewshot_overrides=list(variant.fewshot_overrides))
     cfg = variant_config(exp, variant)
     seeds = [run_seed(exp, cfg, seed, data, progress, variant) for seed in exp.seeds]
     entry.update(status="ok", policy=cfg.model.policy, seeds=list(exp.seeds), **aggregate(seeds), per_seed=seeds)

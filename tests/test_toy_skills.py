@@ -235,3 +235,15 @@ def test_oracle_variant_routes_by_the_primitive_the_batches_carry():
     accs[name] = accuracy(name, params)
   assert accs["oracle"] > 0.8, accs
   assert accs["skillplug_paper"] < 0.6, accs  # reconstruction alone does not find that partition
+
+
+def test_fewshot_overrides_change_the_fine_tune_alone():
+  exp = driver.ToyExperiment()
+  by_name = {v.name: v for v in driver.VARIANTS}
+  for name, label_weight in (("oracle_cue_per_object_router", 1.0), ("oracle_cue_per_object_router_unlabelled", 0.0)):
+    variant = by_name[name]
+    cfg = driver.variant_config(exp, variant)
+    assert cfg.loss.router_label == 1.0  # pretraining is told the primitive in both
+    few = driver.fewshot_config(exp, cfg, variant)
+    assert few.loss.router_label == label_weight and few.trainable == ("router",)
+    assert few.max_steps == exp.fewshot_steps and few.model == cfg.model
