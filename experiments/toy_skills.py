@@ -64,6 +64,7 @@ from tqdm import tqdm
 
 from envs import toy_skills as toy
 from skillplug_jax.atomic_json import write_json_atomic, write_text_atomic
+from skillplug_jax.data import segments
 from skillplug_jax.evaluate.policy_controller import temporal_ensemble
 from skillplug_jax.model.config import ModelConfig
 from skillplug_jax.model.policy import Policy
@@ -85,6 +86,7 @@ class ToyVariant:
 # experiments/configs/skill_library.py (the `cpu`-preset screen) mean the same overrides there.
 USAGE = ("loss.usage=0.5",)
 ORACLE = "loss.router_label=1.0"
+MINED = "skill_labels=toy_targets"
 CUE = f"model.router_cue_slots={toy.OBJECT_STATE_DIM // toy.SLOT - 3}"  # the slots after the 3 landmarks
 VARIANTS = (
     ToyVariant("act", ("model.policy=act",), "ACT"),
@@ -148,6 +150,12 @@ VARIANTS = (
     ToyVariant("oracle_cue_per_object_router_unlabelled", (ORACLE, CUE, "model.object_tokens=per_object"),
                "router told the primitive in pretraining only, cue to the router only, token per object; "
                "few-shot: router, no labels (oracle)", fewshot=("router",), fewshot_overrides=("loss.router_label=0",)),
+    # labels mined from the demonstrations (data/segments.py: the landmark the commanded target
+    # is nearest, or the gripper while it is commanded to switch), no ground truth read (ours)
+    ToyVariant("mined", (ORACLE, MINED), "router trained on mined labels (ours)"),
+    ToyVariant("mined_cue_per_object_router", (ORACLE, MINED, CUE, "model.object_tokens=per_object"),
+               "router trained on mined labels, cue to the router only, token per object; few-shot: router (ours)",
+               fewshot=("router",)),
 )
 DEFAULT_VARIANTS = ("act", "skillplug_paper")
 
@@ -286,8 +294,11 @@ def demo_arrays(env: toy.ToySkillsConfig, key, tasks: Sequence[int], per_task: i
   actions = np.concatenate([actions, pad], axis=1)
   t = np.arange(actions.shape[1])[None, :, None]
   actions = np.where(t < length[:, None, None], actions, last[:, None])
-  return dict(joint_pos=np.asarray(traj.obs["joint_pos"]), object_state=np.asarray(traj.obs["object_state"]),
-              actions=actions.astype(np.float32), length=length, label=np.asarray(traj.label), task=task_ids)
+  joint_pos, object_state = np.asarray(traj.obs["joint_pos"]), np.asarray(traj.obs["object_state"])
+  mined = np.stack([segments.toy_targets(joint_pos[e], object_state[e], actions[e, :joint_pos.shape[1]])
+                    for e in range(len(length))])
+  return dict(joint_pos=joint_pos, object_state=object_state, actions=actions.astype(np.float32),
+              length=length, label=np.asarray(traj.label), mined=mined, task=task_ids)
 
 
 def sample_batch(data: dict, key, batch_size: int, chunk: int) -> dict:
@@ -300,7 +311,7 @@ def sample_batch(data: dict, key, batch_size: int, chunk: int) -> dict:
   batch = {"joint_pos": data["joint_pos"][ep, t], "object_state": data["object_state"][ep, t],
            "actions": jax.vmap(chunk_of)(data["actions"][ep], t),
            "action_mask": (t[:, None] + jnp.arange(chunk)[None]) < length[:, None]}
-  if "label" in data:  # the step's primitive, which only the oracle variants' loss reads
+  if "label" in data:  # the step's primitive or mined label, which only loss.router_label reads
     batch["skill_label"] = data["label"][ep, t]
   return batch
 
@@ -343,12 +354,21 @@ def _trainer(cfg: TrainConfig, steps_per_call: int):
 
 def train(cfg: TrainConfig, params, data: dict, key, steps_per_call: int, desc: str = "",
           progress: bool = True) -> tuple[object, dict]:
-  """`cfg.max_steps` steps from `params` (frozen groups: `cfg.trainable`); the last call's mean losses."""
+  """`cfg.max_steps` steps from `params` (frozen groups: `cfg.trainable`); the last call's mean losses.
+
+  The batches' `skill_label` (read only by loss.router_label) is the primitive, or with
+  train.skill_labels=toy_targets the label mined from the demonstration (data/segments.py)."""
+  data_all = data
   cfg = dataclasses.replace(cfg, seed=0)
   calls = max(1, math.ceil(cfg.max_steps / steps_per_call))
   tx, run = _trainer(cfg, steps_per_call)
   state = loop.TrainState(jnp.zeros((), jnp.int32), params, tx.init(params))
-  data = {k: jnp.asarray(v) for k, v in data.items() if k in ("joint_pos", "object_state", "actions", "length", "label")}
+  labels = {"": "label", "toy_targets": "mined"}.get(cfg.skill_labels)
+  if labels is None:
+    raise ValueError(f"train.skill_labels={cfg.skill_labels!r}: the toy's labeller is 'toy_targets' "
+                     "('': its ground-truth primitive)")
+  data = {k: jnp.asarray(v) for k, v in data.items() if k in ("joint_pos", "object_state", "actions", "length")}
+  data["label"] = jnp.asarray(data_all[labels])
   metrics = {}
   for _ in tqdm(range(calls), desc=desc, unit=f"x{steps_per_call}step", file=sys.stderr,
                 disable=not progress, leave=False, dynamic_ncols=True):
@@ -627,6 +647,14 @@ def make_data(exp: ToyExperiment) -> dict:
   return dict(seen=seen, unseen=unseen)
 
 
+def mined_label_agreement(data: dict) -> dict:
+  """How the labels train.skill_labels=toy_targets mines from the demonstrations match the
+  primitive (every step of every demonstration): NMI and the fraction equal."""
+  keep = np.arange(data["label"].shape[1])[None] < data["length"][:, None]
+  mined, label = data["mined"][keep], data["label"][keep]
+  return dict(labeller="toy_targets", nmi=nmi(mined, label), equal=float(np.mean(mined == label)))
+
+
 def _settings(exp: ToyExperiment) -> dict:
   """What a finished variant's numbers depend on besides its overrides: the config as JSON, less
   the variant and seed lists."""
@@ -675,6 +703,7 @@ def run(exp: ToyExperiment, out: Path, progress: bool = True) -> dict:
       primitives=list(toy.PRIMITIVES),
       config=dataclasses.asdict(exp),
       routing_measured_on="closed-loop queries on the seen tasks (multi-task evaluation), steps before success",
+      mined_labels=mined_label_agreement(data["seen"]),
       variants={})
   for variant in selected_variants(exp):
     if variant.name in done:

@@ -2,7 +2,8 @@
 
   total = rec + kl * L_KL + bsa * L_BSA + sd * L_SD + cvae_kl * ACT's CVAE KL
           (+ usage, load_balance, router_z, distill: ours, zero by default;
-           + router_label: a diagnostic that supervises the router with a known label)
+           + router_label: the router supervised with a label: the toy's primitive (an oracle)
+             or one mined from the demonstrations, data/segments.py)
   (policy 'act': rec + cvae_kl * ACT's CVAE KL only)
 
 Reductions, fixed here so the weights mean the same thing in every run:
@@ -162,9 +163,10 @@ def router_distillation(router_probs: jnp.ndarray, assignment: jnp.ndarray) -> j
 def router_label_loss(router_probs: jnp.ndarray, labels: jnp.ndarray) -> jnp.ndarray:
   """-log r_label averaged over the queries whose label names a skill (0 <= label < K).
 
-  Not a method: an oracle that routes by a label the demonstrations carry (the toy's
-  primitive), to measure what the library would do if the router found that
-  partition. Queries with a label outside [0, K) are left out; 0 when there are none.
+  With the toy's ground-truth primitive, an oracle (not a method) that measures what the
+  library would do if the router found that partition; with labels mined from the
+  demonstrations (train.skill_labels, data/segments.py), ours. Queries with a label
+  outside [0, K) are left out; 0 when there are none.
   """
   p = router_probs.astype(jnp.float32)
   labels = labels.astype(jnp.int32)
@@ -219,7 +221,7 @@ class LossWeights:
   load_balance: float = 0.0  # weight of Switch's K sum_k f_k P_k
   router_z: float = 0.0  # weight of ST-MoE's router z-loss
   distill: float = 1.0  # router -> posterior assignment; only with fusion_source='posterior'
-  router_label: float = 0.0  # oracle diagnostic: -log r_label of the batch's `skill_label`
+  router_label: float = 0.0  # -log r_label of the batch's `skill_label` (toy oracle, or train.skill_labels)
 
   def __post_init__(self):
     validation.check(self, "loss.", _WEIGHT_RULES)
@@ -263,7 +265,7 @@ def total_loss(outputs: Mapping[str, jnp.ndarray], batch: Mapping[str, jnp.ndarr
     if weights.router_label:
       if "skill_label" not in batch:
         raise ValueError("loss.router_label > 0 needs batches with a 'skill_label' (the toy problem's "
-                         "primitive); this dataset has none")
+                         "primitive, or train.skill_labels naming a labeller); these batches have none")
       extra["router_label"] = (weights.router_label, router_label_loss(outputs["router_probs"],
                                                                        batch["skill_label"]))
     if "posterior_assignment" in outputs:

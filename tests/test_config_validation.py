@@ -11,6 +11,7 @@ import pytest
 import envs
 from envs import robot
 from skillplug_jax import cli, experiment, losses, validation
+from skillplug_jax.data import segments
 from skillplug_jax.experiment import Experiment, FewShot, Variant
 from skillplug_jax.losses import LossWeights
 from skillplug_jax.model import config as model_config
@@ -52,7 +53,7 @@ REJECTED = [
     ("train", "warmup_steps", -1), ("train", "lr_schedule", "linear"), ("train", "epochs", 0.0),
     ("train", "max_steps", -5), ("train", "seed", -1), ("train", "trainable", ("encoderr",)),
     ("train", "trainable", ("router", "router")), ("train", "log_every", 0), ("train", "ckpt_every", 0),
-    ("train", "keep_checkpoints", 0),
+    ("train", "keep_checkpoints", 0), ("train", "skill_labels", "phases"),
     ("fewshot", "taskset", ""), ("fewshot", "demos", 0), ("fewshot", "steps", -1),
     ("fewshot", "trainable_act", ("head",)), ("fewshot", "trainable_skillplug", ("router", "router")),
     ("fewshot", "marginal_terms", "no"),
@@ -73,6 +74,7 @@ ACCEPTED = [
     ("train", "max_steps", 0), ("train", "warmup_steps", 0), ("train", "grad_clip", 0.0),
     ("train", "grad_clip", -1.0), ("train", "weight_decay", 0.0), ("train", "trainable", ()),
     ("train", "epochs", 0.5), ("train", "lr", 1), ("train", "backend", "mjx-warp"),
+    ("train", "skill_labels", ""), ("train", "skill_labels", "tabletop_phases"),
     ("fewshot", "steps", 0), ("fewshot", "trainable_act", ("action_proj",)),
     ("experiment", "seeds", (2, 0)), ("experiment", "policies", ("skillplug",)), ("experiment", "workers", 1),
 ]
@@ -185,6 +187,7 @@ def test_every_shipped_config_builds():
 
 def test_copied_names_match_their_source():
   assert config.BACKENDS == envs.BACKENDS
+  assert config.SKILL_LABELLERS == segments.LABELLERS
   assert model_config.CAMERAS == robot.CAMERAS
 
 

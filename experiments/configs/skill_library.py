@@ -28,6 +28,11 @@ Remedies of ours (not the paper's):
               per_object) with the usage term: on the toy problem (seed 0) the one
               skill-library variant that routed decisively over ~4 skills and kept
               its ACT arm's multi-task success within a few points
+  per_object_phases  one token per object, the router trained (cross-entropy, weight 1)
+              to predict the manipulation phase mined from each demonstration
+              (data/segments.py: free motion, grasp, transport, release); on the
+              toy, the same training with the primitive (the oracle) made each
+              skill one primitive and the router alone adaptable
 """
 
 import dataclasses
@@ -37,6 +42,9 @@ from skillplug_jax.experiment import Experiment, Variant, load
 
 USAGE = ("train.loss.usage=0.5",)
 PER_OBJECT = "train.model.object_tokens=per_object"
+# the router trained to predict each step's manipulation phase, mined from the demonstrations
+# (data/segments.py tabletop_phases: free motion, grasp, transport, release)
+PHASES = ("train.loss.router_label=1.0", "train.skill_labels=tabletop_phases")
 
 
 def get_config() -> Experiment:
@@ -57,4 +65,6 @@ def get_config() -> Experiment:
           Variant("per_object", (PER_OBJECT, "policies=act,skillplug"), "one token per object"),
           Variant("act_per_object", (PER_OBJECT, "policies=act"), "ACT, one token per object"),
           Variant("per_object_usage", (PER_OBJECT,) + USAGE, "one token per object + usage 0.5 (ours)"),
+          Variant("per_object_phases", (PER_OBJECT,) + PHASES, "one token per object, router trained on "
+                  "mined phases (ours)"),
       ))

@@ -12,7 +12,7 @@ size (few-shot: 10 demos, batch 16) still gives full batches.
 A sample is the observation at t (joint state normalised, object state too
 unless the model reads it raw), the normalised action chunk t..t+chunk-1
 (zeros and `action_mask` False past the episode end), and the task id, for
-reporting only. The dataset is decoded once into flat numpy arrays (images
+reporting only (with `skill_labels`, each step's mined label too). The dataset is decoded once into flat numpy arrays (images
 too: 64x64 PNGs decode at load time, and a batch is then a gather); a thread
 builds the next batches and puts them on the devices while the current step
 runs.
@@ -134,12 +134,15 @@ class ChunkLoader:
 
   def __init__(self, demos: Demonstrations, batch_size: int, chunk: int = 25, seed: int = 0,
                images: bool = False, sharding: NamedSharding | None = None,
-               normalize_object_state: bool = True):
+               normalize_object_state: bool = True, skill_labels: np.ndarray | None = None):
     if images and demos.image_size is None:
       raise DatasetError("images requested but the demonstrations were loaded without images")
     if normalize_object_state and "object_state" not in demos.stats:
       raise DatasetError(f"{demos.path}: the statistics have no object_state entry to normalise with")
     self.normalize_object_state = normalize_object_state
+    if skill_labels is not None and len(skill_labels) != len(demos.steps["action"]):
+      raise ValueError(f"{len(skill_labels)} skill labels for {len(demos.steps['action'])} steps")
+    self.skill_labels = skill_labels  # [S] per step (data/segments.py), or None
     self.demos, self.batch_size, self.chunk, self.seed, self.images = demos, batch_size, chunk, seed, images
     self.sharding = sharding or data_sharding()
     n_dev = self.sharding.mesh.size
@@ -200,6 +203,8 @@ class ChunkLoader:
     if self.images:
       for cam in CAMERAS:
         batch[f"{cam}_rgb"] = d.steps[f"{cam}_rgb"][row]
+    if self.skill_labels is not None:
+      batch["skill_label"] = self.skill_labels[row].astype(np.int32)
     return batch
 
   def device_batch(self, step: int) -> dict:

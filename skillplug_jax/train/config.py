@@ -24,12 +24,15 @@ LR_SCHEDULES = ("constant", "cosine")
 # envs.BACKENDS, copied: envs is slow to import and a config must be cheap to build
 # (tests/test_config_validation.py keeps the two equal).
 BACKENDS = ("auto", "mujoco", "mjx-warp")
+# skillplug_jax.data.segments.LABELLERS, copied for the same reason (the test keeps them equal).
+SKILL_LABELLERS = ("tabletop_phases", "toy_targets")
 
 
 _count = validation.count
 _RULES = dict(
     preset=validation.text(), taskset=validation.text(), demos=_count(1), data_seed=_count(0),
-    data_dir=validation.text(), backend=validation.one_of(BACKENDS), batch_size=_count(1),
+    data_dir=validation.text(), backend=validation.one_of(BACKENDS),
+    skill_labels=validation.one_of(("",) + SKILL_LABELLERS), batch_size=_count(1),
     lr=validation.number(above=0), weight_decay=validation.number(0),
     grad_clip=validation.number(note=" (<= 0: no clipping)"), warmup_steps=_count(0),
     lr_schedule=validation.one_of(LR_SCHEDULES), epochs=validation.number(above=0),
@@ -50,6 +53,10 @@ class TrainConfig:
   data_seed: int = 0
   data_dir: str = "results/datasets"
   backend: str = "auto"  # physics of the demonstrations (envs.BACKENDS); a run records the resolved one
+  # Ours (issue 27): every step's `skill_label` mined from the demonstrations by this labeller
+  # (data/segments.py), which loss.router_label trains the router to predict. '': none (the toy:
+  # its ground-truth primitive, the oracle).
+  skill_labels: str = ""
   # optimisation (ACT: AdamW, lr 1e-5 backbone / 1e-4 rest, weight decay 1e-4)
   batch_size: int = 16
   lr: float = 1e-4

@@ -35,6 +35,7 @@ import envs
 from skillplug_jax import dir_lock, losses
 from skillplug_jax.data import demos as demo_data
 from skillplug_jax.data import loader as data_loader
+from skillplug_jax.data import segments
 from skillplug_jax.experiment import RunRecord
 from skillplug_jax.model import freeze
 from skillplug_jax.model.policy import Policy
@@ -158,6 +159,15 @@ def train(cfg: TrainConfig, progress: bool = True, stop_after: int | None = None
     return _train(cfg, progress, stop_after, record)
 
 
+def skill_labels(cfg: TrainConfig, data) -> np.ndarray | None:
+  """Every step's label from `cfg.skill_labels`' labeller (data/segments.py), or None."""
+  if not cfg.skill_labels:
+    return None
+  s = data.steps
+  return segments.label_steps(cfg.skill_labels, s["joint_pos"], s["object_state"], s["action"],
+                              data.start, data.length)
+
+
 def writer_lock(run_dir: Path):
   """The run directory's lock (`dir_lock`): a second process training into it stops at once. Several
   hosts (jax.distributed) write one run together: the first process holds it for them."""
@@ -177,7 +187,8 @@ def _train(cfg: TrainConfig, progress: bool, stop_after: int | None, record: Run
   loader = data_loader.ChunkLoader(data, cfg.batch_size, chunk=cfg.model.chunk, seed=cfg.seed,
                                    images=cfg.model.use_images,
                                    sharding=NamedSharding(mesh, PartitionSpec("data")),
-                                   normalize_object_state=cfg.model.normalize_object_state)
+                                   normalize_object_state=cfg.model.normalize_object_state,
+                                   skill_labels=skill_labels(cfg, data))
   total = cfg.num_steps(data.num_episodes)
 
   key = jax.random.PRNGKey(cfg.seed)
