@@ -17,7 +17,9 @@ similarity at each K):
    (token-averaged), how far the u_k spread around their mean, how much the
    fused feature h~ differs from the encoder's h, and linear CKA between
    h~ and the same seed's ACT encoder output (1: the plug's feature is
-   ACT's feature up to a rotation and scale).
+   ACT's feature up to a rotation and scale); and whether the router's
+   choice follows the manipulation phase mined from each demonstration
+   (data/segments.py tabletop_phases): NMI, and the skills each phase picks.
 
 Evaluations are cached beside each run (`<run>/eval/probe_<mode>_*.json`),
 so a killed probe resumes. Writes OUT/skill_probes.{json,md}.
@@ -39,7 +41,9 @@ import envs
 from experiments import pipeline
 from skillplug_jax import diagnostics, experiment
 from skillplug_jax.atomic_json import write_json_atomic, write_text_atomic
+from experiments.toy_skills import nmi
 from skillplug_jax.data import loader as data_loader
+from skillplug_jax.data import segments
 from skillplug_jax.evaluate import protocol
 from skillplug_jax.evaluate.tables import mean_se
 from skillplug_jax.evaluate.policy_controller import load_controller
@@ -128,6 +132,9 @@ def demo_states(run: Path, tasks, per_episode: int = 4) -> dict[str, dict]:
   data = dataclasses.replace(data, stats=run_files.read_stats(run))
   ld = data_loader.ChunkLoader(data, 1, chunk=cfg.model.chunk, images=cfg.model.use_images,
                                normalize_object_state=cfg.model.normalize_object_state)
+  # each state's manipulation phase mined from its demonstration (data/segments.py), whatever the
+  # run trained on: does the routing follow the phases?
+  phases = loop.skill_labels(dataclasses.replace(cfg, skill_labels="tabletop_phases"), data)
   out = {}
   for i, task in enumerate(data.tasks):
     if task not in tasks:
@@ -138,6 +145,7 @@ def demo_states(run: Path, tasks, per_episode: int = 4) -> dict[str, dict]:
     t = np.floor(frac * data.length[ep]).astype(np.int64)
     b = ld.gather(ep, t)
     out[task] = {k: v for k, v in b.items() if k in ("joint_pos", "object_state") or k.endswith("_rgb")}
+    out[task]["mined_phase"] = phases[data.start[ep] + t]
   return out
 
 
@@ -154,8 +162,11 @@ def geometry(run: Path, act_run: Path | None, tasks) -> dict:
   states = demo_states(run, tasks)
   out = {}
   skills = None
+  chosen, phase = [], []
   for task, obs in states.items():
+    phase.append(obs.pop("mined_phase"))
     h, u, r, fused, skills = map(np.asarray, feats(params, obs))
+    chosen.append(r.argmax(-1))
     um = u.mean(axis=2)  # [B, K, D] token-averaged u_k
     k = um.shape[1]
     sim = np.array([[_cos(um[:, a], um[:, b]).mean() for b in range(k)] for a in range(k)])
@@ -178,8 +189,12 @@ def geometry(run: Path, act_run: Path | None, tasks) -> dict:
   emb = np.asarray(skills)
   k = emb.shape[0]
   esim = np.array([[_cos(emb[a], emb[b]) for b in range(k)] for a in range(k)])
+  chosen, phase = np.concatenate(chosen), np.concatenate(phase)
   return dict(tasks=out, skill_cosine=esim.round(4).tolist(),
-              skill_offdiag_cosine=float(esim[~np.eye(k, dtype=bool)].mean()))
+              skill_offdiag_cosine=float(esim[~np.eye(k, dtype=bool)].mean()),
+              phase_skill_nmi=nmi(chosen, phase),
+              phase_skill_counts=[np.bincount(chosen[phase == q], minlength=k).tolist()
+                                  for q in range(len(segments.PHASES))])
 
 
 def report(result: dict) -> str:
@@ -188,15 +203,18 @@ def report(result: dict) -> str:
   runs = list(result["seeds"])  # "0", "1", ... or, for a config with variants, "<variant>/seed<S>"
   looped = [s for s in runs if "closed_loop" in result["seeds"][s]]
   lines = closed_loop_report(result, looped, tasks, abbr) if looped else []
-  lines += ["", "Skill geometry on demonstration states (per run, mean over the tasks; per task in the JSON):", "",
-            "| run | K | skill cos (off-diag) | u_k cos (off-diag) | u_k spread | cos(h~, h) | cos(h~, mean u) | CKA(h~, ACT h) | CKA(h, ACT h) |",
-            "|---|---|---|---|---|---|---|---|---|"]
+  lines += ["", "Skill geometry on demonstration states (per run, mean over the tasks; per task in the JSON); "
+            "phase NMI: the router's choice (argmax) against the manipulation phase mined from the "
+            "demonstration (data/segments.py), all tasks pooled:", "",
+            "| run | K | skill cos (off-diag) | u_k cos (off-diag) | u_k spread | cos(h~, h) | cos(h~, mean u) | CKA(h~, ACT h) | CKA(h, ACT h) | phase NMI |",
+            "|---|---|---|---|---|---|---|---|---|---|"]
   for s in runs:
     g = result["seeds"][s]["geometry"]
     m = lambda key: float(np.mean([g["tasks"][t][key] for t in g["tasks"]])) if all(key in g["tasks"][t] for t in g["tasks"]) else float("nan")  # noqa: E731
     lines.append(f"| {s} | {len(g['skill_cosine'])} | {g['skill_offdiag_cosine']:.3f} | {m('interactor_offdiag_cosine'):.3f} | "
                  f"{m('interactor_spread'):.3f} | {m('fused_vs_encoder_cosine'):.3f} | {m('fused_vs_mean_u_cosine'):.3f} | "
-                 f"{m('cka_fused_vs_act'):.3f} | {m('cka_encoder_vs_act'):.3f} |")
+                 f"{m('cka_fused_vs_act'):.3f} | {m('cka_encoder_vs_act'):.3f} | "
+                 f"{g.get('phase_skill_nmi', float('nan')):.3f} |")
   return "\n".join(lines)
 
 

@@ -422,6 +422,10 @@ def test_skill_probes_replace_the_routing_and_measure_the_skills(tiny_run, capsy
     assert np.allclose(np.diag(row["interactor_cosine"]), 1.0, atol=1e-4) and row["states"] == 8  # 2 demos x 4
     assert 0.0 < row["cka_fused_vs_act"] <= 1.0 + 1e-6 and row["interactor_spread"] >= 0.0
     assert sum(row["router_mean"]) == pytest.approx(1.0, abs=1e-5)
+  # every demonstration state counted once under its mined phase and the skill the router chose
+  counts = np.asarray(g["phase_skill_counts"])
+  assert counts.shape == (4, 3) and counts.sum() == sum(row["states"] for row in g["tasks"].values())
+  assert 0.0 <= g["phase_skill_nmi"] <= 1.0
   assert "| uniform |" in capsys.readouterr().out
   # mixed-skill rollouts: each pair half and half, only the modes asked for
   assert skill_probes.modes(3, pairs=True)["mix02"] == (0.5, 0.0, 0.5) and "mix12" in skill_probes.modes(3, True)
