@@ -126,8 +126,10 @@ def cmd_eval(args) -> int:
   video_dir = args.video_dir or (f"{args.out}_videos" if args.out else "videos")
   out = protocol.evaluate_runs(runs, tasks, args.trials, seed=args.seed, batch=args.batch,
                                query_every=args.query_every, videos=args.videos, video_dir=video_dir,
-                               backend=args.backend, appearance=args.appearance)
+                               backend=args.backend, appearance=args.appearance,
+                               routing_smoothing=args.routing_smoothing)
   shift = ", appearance shifted" if args.appearance != "default" else ""
+  shift += f", routing smoothed {args.routing_smoothing}" if args.routing_smoothing else ""
   print(report.write(out, f"{args.trials} paired trials per task (seed {args.seed}{shift})", args.out))
   if args.videos:
     print(f"videos of the first {args.videos} trials per task: {video_dir}/<run>/<task>_trialNN.gif")
@@ -239,6 +241,9 @@ def build_parser() -> argparse.ArgumentParser:
   v.add_argument("--appearance", default="default", choices=("default", "shifted"),
                  help="shifted: each trial's cameras see other table, object and light colours, drawn from "
                       "(seed, trial); the physics and trials are the default's (ours, docs/evaluation.md)")
+  v.add_argument("--routing-smoothing", type=float, default=0.0, metavar="S",
+                 help="ACT+SkillPlug only: decode each query with r_t = S r_(t-1) + (1 - S) router(o_t), "
+                      "an exponential average of the router's weights over queries (ours; 0: its own)")
   v.set_defaults(fn=cmd_eval)
 
   f = sub.add_parser("fewshot", help="adapt multi-task runs to unseen tasks from a few demos, then evaluate",

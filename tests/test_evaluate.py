@@ -451,3 +451,43 @@ def test_an_image_policy_on_another_renderer_is_warned_about(capsys):
   protocol.warn_if_other_renderer("runs/img", cfg, "mjx-warp")
   protocol.warn_if_other_renderer("runs/state", dataclasses.replace(cfg, model=experiment.preset("quick").model), "mujoco")
   assert capsys.readouterr().err == ""
+
+
+def test_routing_smoothing_averages_the_routers_weights_over_queries():
+  """With routing_smoothing s, query t decodes with r_t = s r_(t-1) + (1 - s) router(o_t), r_0 the
+  router's own: two observations whose routers differ, seen one after the other."""
+  m, params, stats = _tiny_policy()
+  leaves, tree = jax.tree.flatten(params)
+  params = jax.tree.unflatten(tree, [x + 0.05 * jax.random.normal(jax.random.PRNGKey(i), x.shape)
+                                     for i, x in enumerate(leaves)])  # a router that is not uniform
+  rng = np.random.default_rng(2)
+  states = [ObsOnly({"joint_pos": jnp.asarray(rng.normal(size=(2, 7)), jnp.float32),
+                     "object_state": jnp.asarray(rng.normal(size=(2, 14)), jnp.float32)}) for _ in range(2)]
+  own = [np.asarray(run_episodes_free_routing(m, params, stats, s)) for s in states]
+  assert np.abs(own[0] - own[1]).max() > 0.05, own
+  c = policy_controller(m, params, stats, routing_smoothing=0.75)
+  cstate, act = c.init(states[0]), jax.jit(c.act)
+  _, cstate, info0 = act(c.weights, cstate, states[0], jnp.int32(0))
+  _, cstate, info1 = act(c.weights, cstate, states[1], jnp.int32(1))
+  np.testing.assert_allclose(info0["routing"], own[0], rtol=1e-5, atol=1e-6)
+  np.testing.assert_allclose(info1["routing"], 0.75 * own[0] + 0.25 * own[1], rtol=1e-5, atol=1e-6)
+  # and the chunk sent is the one decoded with those weights
+  plain = policy_controller(m, params, stats, routing=None)
+  action, _, _ = jax.jit(plain.act)(plain.weights, plain.init(states[0]), states[0], jnp.int32(0))
+  first, _, _ = act(c.weights, c.init(states[0]), states[0], jnp.int32(0))
+  np.testing.assert_allclose(first, action, rtol=1e-5, atol=1e-5)
+  for bad, match in ((dict(routing_smoothing=1.0), r"in \[0, 1\)"),
+                     (dict(routing_smoothing=0.5, routing=[1.0, 0.0, 0.0]), "its own router"),
+                     (dict(routing_smoothing=0.5, query_every=4), "a query every step")):
+    with pytest.raises(ValueError, match=match):
+      policy_controller(m, params, stats, **bad)
+  act_model, act_params, _ = _tiny_policy("act")
+  with pytest.raises(ValueError, match="ACT\\+SkillPlug"):
+    policy_controller(act_model, act_params, stats, routing_smoothing=0.5)
+
+
+def run_episodes_free_routing(m, params, stats, state):
+  """The router's own weights for `state` (the unsmoothed controller's routing at t = 0)."""
+  c = policy_controller(m, params, stats)
+  _, _, info = jax.jit(c.act)(c.weights, c.init(state), state, jnp.int32(0))
+  return info["routing"]

@@ -33,6 +33,11 @@ Remedies of ours (not the paper's):
               (data/segments.py: free motion, grasp, transport, release); on the
               toy, the same training with the primitive (the oracle) made each
               skill one primitive and the router alone adaptable
+  per_object_phases_sd0, per_object_phases_sq  the same without the SD term, and with
+              it on squared cosines weighted by r_k r_j (per_object_phases, seed 0:
+              u_k at the cosine floor -1/3, the fused feature dominated by the skills)
+  per_object_phases_w01  the phase term at weight 0.1 (routing less decisive, so that the
+              decoder keeps deciding from the scene where the router errs)
 """
 
 import dataclasses
@@ -67,4 +72,12 @@ def get_config() -> Experiment:
           Variant("per_object_usage", (PER_OBJECT,) + USAGE, "one token per object + usage 0.5 (ours)"),
           Variant("per_object_phases", (PER_OBJECT,) + PHASES, "one token per object, router trained on "
                   "mined phases (ours)"),
+          Variant("per_object_phases_w01", (PER_OBJECT, "train.loss.router_label=0.1",
+                                             "train.skill_labels=tabletop_phases"),
+                  "one token per object, router on mined phases at weight 0.1 (ours)"),
+          Variant("per_object_phases_sd0", (PER_OBJECT,) + PHASES + ("train.loss.sd=0",),
+                  "one token per object, router on mined phases, no SD term (ours)"),
+          Variant("per_object_phases_sq", (PER_OBJECT,) + PHASES + ("train.loss.sd_kind=squared",
+                                                                     "train.loss.sd_usage_weighted=true"),
+                  "one token per object, router on mined phases, squared SD r-weighted (ours)"),
       ))

@@ -39,15 +39,24 @@ def temporal_ensemble(buf, pred, t, k: float = 0.01):
 
 def policy_controller(model: ModelConfig, params, stats: dict, *, query_every: int = 1,
                       ensemble: bool | None = None, ensemble_k: float = 0.01,
-                      routing=None, name: str = "") -> Controller:
-  """routing: fixed weights ([K]) replace the router's (fixed- and mixed-skill rollouts)."""
+                      routing=None, routing_smoothing: float = 0.0, name: str = "") -> Controller:
+  """routing: fixed weights ([K]) replace the router's (fixed- and mixed-skill rollouts).
+
+  routing_smoothing s in [0, 1) (ours, a closed-loop probe of routing that chatters): each query
+  decodes with r_t = s r_{t-1} + (1 - s) router(o_t) instead of the router's own weights (r_0 the
+  router's); needs the router (no fixed routing) and a query every step."""
   if query_every < 1 or query_every > model.chunk:
     raise ValueError(f"query_every must be in 1..{model.chunk} (the chunk size), got {query_every}")
   temporal = (query_every == 1) if ensemble is None else ensemble
   if temporal and query_every != 1:
     raise ValueError("temporal ensembling queries the policy every step (query_every=1)")
   fixed = None if routing is None else tuple(float(r) for r in routing)
-  init, act = _controller_fns(model, query_every, temporal, ensemble_k, fixed)
+  if not 0.0 <= routing_smoothing < 1.0:
+    raise ValueError(f"routing_smoothing must be in [0, 1), got {routing_smoothing}")
+  if routing_smoothing and (fixed is not None or not model.is_skillplug or not temporal):
+    raise ValueError("routing_smoothing needs an ACT+SkillPlug policy, its own router (no fixed routing) "
+                     "and a query every step with temporal ensembling")
+  init, act = _controller_fns(model, query_every, temporal, ensemble_k, fixed, float(routing_smoothing))
   inputs = ("action", "joint_pos") + (("object_state",) if model.normalize_object_state else ())
   missing = [k for k in inputs if k not in stats]
   if missing:
@@ -61,14 +70,15 @@ def policy_controller(model: ModelConfig, params, stats: dict, *, query_every: i
 
 
 @functools.lru_cache(maxsize=None)
-def _controller_fns(model: ModelConfig, query_every: int, temporal: bool, ensemble_k: float, fixed):
+def _controller_fns(model: ModelConfig, query_every: int, temporal: bool, ensemble_k: float, fixed,
+                    smoothing: float = 0.0):
   """(init, act) for one model and query scheme; cached so that runs of the
   same model reuse one compiled evaluation loop (their weights are arguments)."""
   policy = Policy(model)
   chunk, adim = model.chunk, model.action_dim
   routing = None if fixed is None else jnp.asarray(fixed, jnp.float32)
 
-  def predict(weights, state):
+  def predict(weights, state, routing=routing):
     obs, st = state.obs, weights["stats"]
     x = {"joint_pos": (obs["joint_pos"] - st["joint_pos"]["mean"]) / st["joint_pos"]["std"],
          "object_state": envs.padded_object_state(obs["object_state"])}
@@ -79,6 +89,21 @@ def _controller_fns(model: ModelConfig, query_every: int, temporal: bool, ensemb
         x[f"{cam}_rgb"] = obs[f"{cam}_rgb"]
     pred, r = policy.apply({"params": weights["params"]}, x, routing, method=Policy.predict)
     return pred * st["action"]["std"] + st["action"]["mean"], r
+
+  if temporal and smoothing:
+    def init(state):
+      b = state.obs["joint_pos"].shape[0]
+      return jnp.zeros((b, chunk, chunk, adim), jnp.float32), jnp.zeros((b, model.num_skills), jnp.float32)
+
+    def act(weights, carry, state, t):
+      buf, last_r = carry
+      _, own = predict(weights, state)
+      r = jnp.where(t == 0, own, smoothing * last_r + (1.0 - smoothing) * own)
+      pred, _ = predict(weights, state, r)
+      action, buf = temporal_ensemble(buf, pred, t, ensemble_k)
+      return action, (buf, r), {"routing": r}
+
+    return init, act
 
   if temporal:
     def init(state):

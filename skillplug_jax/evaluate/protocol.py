@@ -178,19 +178,22 @@ def _write_videos(frames: list, out: Path, task: str, fps: int = 20) -> None:
 
 def evaluate_runs(run_dirs: Sequence[str | Path], tasks: Sequence[str], trials: int, seed: int = EVAL_SEED,
                   batch: int = 50, query_every: int = 1, progress: bool = True, videos: int = 0,
-                  video_dir: str | Path = "videos", backend: str = "auto", appearance: str = "default") -> dict:
+                  video_dir: str | Path = "videos", backend: str = "auto", appearance: str = "default",
+                  routing_smoothing: float = 0.0) -> dict:
   """Every run on every task, and the tables (`tables.summarise`).
 
   Runs whose training configurations differ only in the seed (and where
   they were written) are one row's training seeds; any other difference
   makes another row, named by its overrides against the run's record
   (`run_files.read_record`). videos > 0: GIFs of each run's first trials in
-  video_dir/<run name>/. appearance: "default" or "shifted" (`evaluate_task`).
+  video_dir/<run name>/. appearance: "default" or "shifted" (`evaluate_task`). routing_smoothing:
+  `policy_controller`'s (ours; 0: the router's own weights).
   """
   envs.appearance.check(appearance)  # before any run is loaded
   results = []
   # Every run is loaded first: a missing or damaged checkpoint fails before any evaluation.
-  loaded = [(run, *load_controller(run, query_every=query_every)) for run in run_dirs]
+  smooth = dict(routing_smoothing=routing_smoothing) if routing_smoothing else {}
+  loaded = [(run, *load_controller(run, query_every=query_every, **smooth)) for run in run_dirs]
   records = {run: run_files.read_record(run) for run in run_dirs}
   backend = envs.resolve_backend(backend)
   for run, _, cfg in loaded:
@@ -208,7 +211,8 @@ def evaluate_runs(run_dirs: Sequence[str | Path], tasks: Sequence[str], trials: 
       r.update(run=str(run), **row, trained_on=cfg.backend, wall_s=round(time.time() - t0, 1))
       results.append(r)
   bar.close()
-  return dict(trials=trials, seed=seed, query_every=query_every, device=str(jax.devices()[0]),
+  return dict(trials=trials, seed=seed, query_every=query_every, routing_smoothing=routing_smoothing,
+              device=str(jax.devices()[0]),
               backend=backend, appearance=appearance, results=results, **tables.summarise(results, tasks))
 
 
