@@ -39,9 +39,9 @@ import numpy as np
 
 import envs
 from experiments import pipeline
+from experiments.toy_skills import nmi
 from skillplug_jax import diagnostics, experiment
 from skillplug_jax.atomic_json import write_json_atomic, write_text_atomic
-from experiments.toy_skills import nmi
 from skillplug_jax.data import loader as data_loader
 from skillplug_jax.data import segments
 from skillplug_jax.evaluate import protocol

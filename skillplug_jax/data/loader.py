@@ -12,7 +12,8 @@ size (few-shot: 10 demos, batch 16) still gives full batches.
 A sample is the observation at t (joint state normalised, object state too
 unless the model reads it raw), the normalised action chunk t..t+chunk-1
 (zeros and `action_mask` False past the episode end), and the task id, for
-reporting only (with `skill_labels`, each step's mined label too). The dataset is decoded once into flat numpy arrays (images
+reporting only; with `skill_labels`, the step's mined label too. The dataset
+is decoded once into flat numpy arrays (images
 too: 64x64 PNGs decode at load time, and a batch is then a gather); a thread
 builds the next batches and puts them on the devices while the current step
 runs.
