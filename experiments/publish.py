@@ -19,7 +19,7 @@ from skillplug_jax.experiment import Experiment
 
 def merged_summary(parts: list[dict], key: str, tasks, reference: list[dict] = ()) -> dict:
   """The jobs' results of one stage (and the reference's) and their tables: rows group every job's runs."""
-  results = list(reference) + [r for part in parts for r in part[key]]
+  results = [groups.normalised_result(r) for r in list(reference) + [r for part in parts for r in part[key]]]
   return dict(results=results, **tables.summarise(results, tasks))
 
 
@@ -38,7 +38,7 @@ def reference_results(path: str, stage: str) -> list[dict]:
     r = dict(r, reference=str(p))
     if "overrides" not in r and groups.key_id(r["config"]) in published:
       r["overrides"] = published[groups.key_id(r["config"])]
-    out.append(dict(r, config=groups.normalised(r["config"])))
+    out.append(groups.normalised_result(r))
   return out
 
 

@@ -104,7 +104,7 @@ def closed_loop(run: Path, exp: Experiment, tasks, k: int, videos: int = 0,
 
 
 def _features(module: Policy, obs):
-  """The inference path's plug input (scene tokens, or decoder steps with plug_site='decoder'),
+  """The inference path's plug input (scene tokens, or decoder steps with plug.site='decoder'),
   interactor outputs, routing, fused feature and skill embeddings."""
   f = module.features(obs)
   return f["plug_input"], f["skill_tokens"], f["routing"], f["fused"], module.skills()
@@ -285,7 +285,7 @@ def main(argv=None) -> int:
         if not (run / "config.json").exists():
           raise ValueError(f"{run} does not exist: run the pipeline first (python -m experiments.pipeline "
                            f"--config {args.config} --out {out})")
-        k = run_files.read_config(run).model.num_skills
+        k = run_files.read_config(run).model.plug.num_skills
         key = f"{variant.name}/seed{seed}" if variant.name else str(seed)
         entry = dict(run=str(run), variant=variant.name, label=variant.label or variant.name)
         if not args.geometry_only:

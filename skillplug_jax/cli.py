@@ -256,7 +256,7 @@ def build_parser() -> argparse.ArgumentParser:
                  help="fine-tuning steps (default: the few-shot steps the source run recorded of its config, "
                       "e.g. quick 500; 0 trains the source's epochs)")
   f.add_argument("--no-marginal-terms", action="store_true",
-                 help="fine-tune without the source's loss.usage and loss.load_balance (terms on the batch's "
+                 help="fine-tune without the source's loss.usage (a term on the batch's "
                       "mean routing; ours, issue 27); fine-tunes go to RUN_fewshot_no_marginal_terms/")
   f.add_argument("--trainable", default="",
                  help="parameter groups to fine-tune, comma-separated, for either policy (default: those the "

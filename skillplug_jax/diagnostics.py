@@ -149,11 +149,8 @@ def skill_geometry(u: jnp.ndarray, h: jnp.ndarray, r: jnp.ndarray) -> dict:
 def training_metrics(outputs: Mapping[str, jnp.ndarray], task_ids: jnp.ndarray | None = None) -> dict:
   """The scalar diagnostics of one training batch, as diag_<name> (no gradient).
 
-  The routing statistics read the router's weights; with
-  fusion_source='posterior' the posterior's assignment gets its own
-  (diag_posterior_*) and diag_router_agreement is how often the router's
-  top skill is the posterior's. The geometry reads what the fusion used.
-  task_skill_mi here is a batch estimate (a few queries per task: biased
+  The routing statistics and the geometry read the router's weights (what
+  the fusion used). task_skill_mi here is a batch estimate (a few queries per task: biased
   upwards); the evaluation's is the one to quote.
   """
   out = jax.lax.stop_gradient({k: v for k, v in outputs.items() if k != "pred_actions"})
@@ -162,15 +159,8 @@ def training_metrics(outputs: Mapping[str, jnp.ndarray], task_ids: jnp.ndarray |
   names = ["usage_entropy", "query_entropy", "effective_skills"]
   names += ["task_skill_mi", "task_skill_mi_norm"] if tid is not None else []
   m = {f"diag_{k}": stats[k] for k in names}
-  if "posterior_assignment" in out:
-    q = routing_stats(out["posterior_assignment"])
-    m.update(diag_posterior_query_entropy=q["query_entropy"],
-             diag_posterior_effective_skills=q["effective_skills"],
-             diag_router_agreement=jnp.mean(jnp.argmax(out["router_probs"], -1)
-                                            == jnp.argmax(out["posterior_assignment"], -1)))
   if "skill_tokens" in out and "plug_input" in out:
-    g = skill_geometry(out["skill_tokens"], out["plug_input"],
-                       out.get("fusion_weights", out["router_probs"]))
+    g = skill_geometry(out["skill_tokens"], out["plug_input"], out["router_probs"])
     for k in ("signed_cos", "abs_cos", "signed_cos_centred", "abs_cos_centred",
               "fused_offset_ratio", "token_spread"):
       m[f"diag_{k}"] = g[k]

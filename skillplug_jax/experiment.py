@@ -72,8 +72,8 @@ class FewShot:
   trainable_act: tuple[str, ...] = ("action_head",)
   trainable_skillplug: tuple[str, ...] = ("action_head", "router")
   # Ours (issue 27): whether the fine-tune keeps the source's terms on the batch's mean routing
-  # (loss.usage, loss.load_balance). They ask a batch to spread over the skills, which suits
-  # pretraining's batch of many tasks; a few-shot batch holds one task. False: both weigh 0.
+  # (loss.usage). It asks a batch to spread over the skills, which suits
+  # pretraining's batch of many tasks; a few-shot batch holds one task. False: it weighs 0.
   marginal_terms: bool = True
 
   def __post_init__(self):

@@ -31,7 +31,7 @@ def fewshot_config(source: TrainConfig, source_dir: Path, task: str, plan: FewSh
   steps = plan.steps
   loss, folder = source.loss, f"{source_dir}_fewshot" + (f"_{variant}" if variant else "")
   if not plan.marginal_terms:  # one task's batch: no pressure to spread it over the skills
-    loss = dataclasses.replace(loss, usage=0.0, load_balance=0.0)
+    loss = dataclasses.replace(loss, usage=0.0)
     folder += "_no_marginal_terms"  # beside the default protocol's fine-tunes, not resuming them
   return dataclasses.replace(
       source, taskset=task, data_taskset=plan.taskset, demos=plan.demos, init_from=str(source_dir),
@@ -80,7 +80,7 @@ def adapt_and_evaluate(source_runs: Sequence[str | Path], taskset: str = "discov
                                  image_size=cfg.model.image_size, backend=backend)
       r.update(run=str(run), source=str(src), **groups.row_fields(source, record),
                trainable=list(cfg.trainable), steps=cfg.max_steps, trained_on=source.backend,
-               fewshot_loss=dict(usage=cfg.loss.usage, load_balance=cfg.loss.load_balance))
+               fewshot_loss=dict(usage=cfg.loss.usage))
       results.append(r)
   return dict(taskset=taskset, demos=demos, trials=trials, seed=seed, backend=envs.resolve_backend(backend),
               results=results,

@@ -1,9 +1,9 @@
 """The training objective: each term a pure function, then their weighted sum.
 
   total = rec + kl * L_KL + bsa * L_BSA + sd * L_SD + cvae_kl * ACT's CVAE KL
-          (+ usage, load_balance, router_z, distill: ours, zero by default;
-           + router_label: the router supervised with a label: the toy's primitive (an oracle)
-             or one mined from the demonstrations, data/segments.py)
+          + sum of the auxiliary terms (`AUX_TERMS`, ours, each zero by default: usage;
+            router_label, the router supervised with a label: the toy's primitive (an oracle)
+            or one mined from the demonstrations, data/segments.py)
   (policy 'act': rec + cvae_kl * ACT's CVAE KL only)
 
 Reductions, fixed here so the weights mean the same thing in every run:
@@ -21,9 +21,9 @@ Beyond the paper (issue 27; `LossWeights` says which is which). The paper's
 L_SD, a mean signed cosine, equals (|sum_k u_k/|u_k||^2 - K) / (K(K-1)):
 every set of directions that sums to zero is at its floor with zero
 gradient, so antipodal pairs, which a uniform mixture cancels, are its
-best case. The squared and Gram variants make them the worst case. The
-routing terms (usage, load balance, z-loss) come from mixture-of-experts
-practice: nothing in the paper's loss asks the router to be informative.
+best case. The squared and Gram variants (`SD_KINDS`) make them the worst
+case. The usage term comes from mixture-of-experts practice: nothing in the
+paper's loss asks the router to be informative.
 The training metrics also carry diagnostics (`diag_*`, diagnostics.py),
 computed on stopped gradients: they never change the loss.
 """
@@ -31,14 +31,12 @@ computed on stopped gradients: they never change the loss.
 from __future__ import annotations
 
 import dataclasses
-from typing import Mapping
+from typing import Callable, Mapping
 
 import jax
 import jax.numpy as jnp
 
 from skillplug_jax import diagnostics, validation
-
-SD_KINDS = ("cosine", "squared", "gram")
 
 
 def reconstruction_l1(pred: jnp.ndarray, target: jnp.ndarray, mask: jnp.ndarray) -> jnp.ndarray:
@@ -82,40 +80,49 @@ def _off_diagonal_mean(sim: jnp.ndarray, pair_weights: jnp.ndarray | None = None
   return ((sim * w).sum(axis=(-2, -1)) / jnp.maximum(w.sum(axis=(-2, -1)), 1e-12)).mean()
 
 
+def _cosines(skill_features, centred):
+  """The paper's: cosine similarities of the K token-averaged u_k."""
+  v = _unit(skill_features.astype(jnp.float32))
+  return jnp.einsum("...kd,...jd->...kj", v, v)
+
+
+def _squared_cosines(skill_features, centred):
+  """Ours: squared cosines, 0 only for orthogonal features, 1 for identical or antipodal ones."""
+  return _cosines(skill_features, centred) ** 2
+
+
+def _gram(skill_features, centred):
+  """Ours: the squared Gram matrix of the normalised skill-dependent parts u_k - h, each flattened
+  over its tokens, so what a skill adds must differ from what the others add, token by token."""
+  if centred is None:
+    raise ValueError("sd_kind='gram' needs the centred features u_k - h")
+  c = centred.astype(jnp.float32)
+  v = _unit(c.reshape(*c.shape[:-2], -1))
+  return jnp.einsum("...kd,...jd->...kj", v, v) ** 2
+
+
+# loss.sd_kind -> the pairwise similarity [..., K, K] whose off-diagonal mean L_SD is.
+SD_KINDS: dict[str, Callable] = {"cosine": _cosines, "squared": _squared_cosines, "gram": _gram}
+
+
 def skill_diversity(skill_features: jnp.ndarray, kind: str = "cosine",
                     centred: jnp.ndarray | None = None,
                     usage: jnp.ndarray | None = None) -> jnp.ndarray:
-  """Disentanglement of the K interactor outputs, averaged over the batch.
+  """Disentanglement of the K interactor outputs, averaged over the batch: the mean off-diagonal
+  entry of `SD_KINDS[kind]` (skill_features [B, K, D], the token-averaged u_k; centred
+  [B, K, N, D] = u_k - h, for 'gram').
 
-  kind='cosine' (the paper): mean off-diagonal cosine similarity of the K
-  token-averaged u_k, skill_features [B, K, D]. 0 for mutually orthogonal
-  features, 1 when all K are identical (down to -1/(K-1) at best, which any
-  set of directions summing to zero reaches, antipodal pairs included).
-  kind='squared' (ours): the mean off-diagonal squared cosine: 0 only for
-  orthogonal features, 1 for identical or antipodal ones.
-  kind='gram' (ours): the same on `centred` [B, K, N, D] = u_k - h, each
-  flattened over its tokens: ||G - I||^2 over the off-diagonal of the Gram
-  matrix of the normalised skill-dependent parts, so what a skill adds must
-  differ from what the others add, token by token.
-  usage [K] (ours, `sd_usage_weighted`): weight pair (k, j) by usage_k
-  usage_j (no gradient), so skills the router does not use cannot satisfy
-  the term; equal usage gives the unweighted mean.
+  kind='cosine' (the paper): 0 for mutually orthogonal features, 1 when all K are identical
+  (down to -1/(K-1) at best, which any set of directions summing to zero reaches, antipodal
+  pairs included). usage [K] (ours, `sd_usage_weighted`): weight pair (k, j) by usage_k usage_j
+  (no gradient), so skills the router does not use cannot satisfy the term; equal usage gives
+  the unweighted mean.
   """
   if kind not in SD_KINDS:
-    raise ValueError(f"sd_kind must be one of {SD_KINDS}, got {kind!r}")
-  num_skills = skill_features.shape[-2]
-  if num_skills < 2:
+    raise ValueError(f"sd_kind must be one of {tuple(SD_KINDS)}, got {kind!r}")
+  if skill_features.shape[-2] < 2:
     return jnp.zeros((), jnp.float32)
-  if kind == "gram":
-    if centred is None:
-      raise ValueError("sd_kind='gram' needs the centred features u_k - h")
-    c = centred.astype(jnp.float32)
-    v = _unit(c.reshape(*c.shape[:-2], -1))
-  else:
-    v = _unit(skill_features.astype(jnp.float32))
-  sim = jnp.einsum("...kd,...jd->...kj", v, v)
-  if kind != "cosine":
-    sim = sim**2
+  sim = SD_KINDS[kind](skill_features, centred)
   pair = None
   if usage is not None:
     r = jax.lax.stop_gradient(usage.astype(jnp.float32))
@@ -135,31 +142,6 @@ def mutual_information_usage(probs: jnp.ndarray) -> jnp.ndarray:
   return -(diagnostics.entropy(p.mean(axis=0)) - diagnostics.entropy(p).mean())
 
 
-def load_balance(probs: jnp.ndarray) -> jnp.ndarray:
-  """Switch Transformer's auxiliary loss K sum_k f_k P_k (Fedus et al., 2021):
-  f_k the fraction of queries whose argmax is k (no gradient), P_k the mean
-  probability of k. 1 at perfect balance, K when one skill takes everything."""
-  p = probs.astype(jnp.float32)
-  num_skills = p.shape[-1]
-  f = jax.nn.one_hot(jnp.argmax(p, axis=-1), num_skills).mean(axis=0)
-  return num_skills * jnp.sum(f * p.mean(axis=0))
-
-
-def router_z_loss(logits: jnp.ndarray) -> jnp.ndarray:
-  """ST-MoE's router z-loss (Zoph et al., 2022): mean logsumexp(logits)^2,
-  which keeps the logits small without changing the softmax's shape."""
-  return jnp.mean(jax.nn.logsumexp(logits.astype(jnp.float32), axis=-1) ** 2)
-
-
-def router_distillation(router_probs: jnp.ndarray, assignment: jnp.ndarray) -> jnp.ndarray:
-  """-sum_k sg(q_k) log r_k averaged over the batch: the router learns to
-  predict, from the observation, the skill the posterior assigned from the
-  demonstrated actions (fusion_source='posterior')."""
-  target = jax.lax.stop_gradient(assignment.astype(jnp.float32))
-  log_r = jnp.log(jnp.clip(router_probs.astype(jnp.float32), 1e-12, 1.0))
-  return -(target * log_r).sum(axis=-1).mean()
-
-
 def router_label_loss(router_probs: jnp.ndarray, labels: jnp.ndarray) -> jnp.ndarray:
   """-log r_label averaged over the queries whose label names a skill (0 <= label < K).
 
@@ -176,10 +158,26 @@ def router_label_loss(router_probs: jnp.ndarray, labels: jnp.ndarray) -> jnp.nda
   return jnp.sum(jnp.where(valid, nll, 0.0)) / jnp.maximum(valid.sum(), 1)
 
 
+@dataclasses.dataclass(frozen=True)
+class AuxTerm:
+  """A term of ours beside the paper's four: its value from the forward pass's outputs and the
+  batch, and the batch keys it needs (a weight > 0 without them is an error, not a silent skip)."""
+  value: Callable[[Mapping[str, jnp.ndarray], Mapping[str, jnp.ndarray]], jnp.ndarray]
+  needs: tuple[str, ...] = ()
+  why_missing: str = ""
+
+
+# loss.<name> weighs AUX_TERMS[name]; total_loss adds each whose weight is not 0, in this order.
+AUX_TERMS: dict[str, AuxTerm] = {
+    "usage": AuxTerm(lambda out, batch: mutual_information_usage(out["router_probs"])),
+    "router_label": AuxTerm(
+        lambda out, batch: router_label_loss(out["router_probs"], batch["skill_label"]), ("skill_label",),
+        "the toy problem's primitive, or train.skill_labels naming a labeller"),
+}
+
 # A weight of 0 turns its term off; a negative one would reward what the term penalises.
-_WEIGHT_RULES = dict({name: validation.number(0) for name in (
-    "rec", "kl", "bsa", "sd", "cvae_kl", "usage", "load_balance", "router_z", "distill", "router_label")},
-    sd_kind=validation.one_of(SD_KINDS), sd_usage_weighted=validation.flag())
+_WEIGHT_RULES = dict({name: validation.number(0) for name in ("rec", "kl", "bsa", "sd", "cvae_kl", *AUX_TERMS)},
+                     sd_kind=validation.one_of(SD_KINDS), sd_usage_weighted=validation.flag())
 
 
 @dataclasses.dataclass(frozen=True)
@@ -217,10 +215,8 @@ class LossWeights:
   # Ours (issue 27); the defaults are the paper's objective.
   sd_kind: str = "cosine"  # 'cosine' (paper) | 'squared' | 'gram': `skill_diversity`
   sd_usage_weighted: bool = False  # SD pairs weighted by r_k r_j (batch-mean routing)
+  # the auxiliary terms' weights (AUX_TERMS)
   usage: float = 0.0  # weight of -(H(mean r) - mean H(r)): `mutual_information_usage`
-  load_balance: float = 0.0  # weight of Switch's K sum_k f_k P_k
-  router_z: float = 0.0  # weight of ST-MoE's router z-loss
-  distill: float = 1.0  # router -> posterior assignment; only with fusion_source='posterior'
   router_label: float = 0.0  # -log r_label of the batch's `skill_label` (toy oracle, or train.skill_labels)
 
   def __post_init__(self):
@@ -231,13 +227,11 @@ def total_loss(outputs: Mapping[str, jnp.ndarray], batch: Mapping[str, jnp.ndarr
                weights: LossWeights = LossWeights()) -> tuple[jnp.ndarray, dict]:
   """Weighted sum of the terms `Policy.__call__`'s outputs allow.
 
-  SkillPlug outputs (they carry 'router_probs') get all five terms, and
-  ours where their weights are nonzero (distill: where the outputs carry a
-  posterior assignment); ACT's get rec and cvae_kl. The routing terms read
-  the distribution the fusion follows in training: the router's, or the
-  posterior's assignment with fusion_source='posterior'. Returns (loss,
-  metrics) with every unweighted term, the total under 'loss', and the
-  `diag_*` diagnostics (no gradient) where the outputs allow them.
+  SkillPlug outputs (they carry 'router_probs') get the paper's four terms
+  and each auxiliary term whose weight is not 0 (`AUX_TERMS`); ACT's get rec
+  and cvae_kl. Returns (loss, metrics) with every unweighted term, the total
+  under 'loss', and the `diag_*` diagnostics (no gradient) where the
+  outputs allow them.
   """
   metrics = {
       "rec": reconstruction_l1(outputs["pred_actions"], batch["actions"], batch["action_mask"]),
@@ -245,35 +239,25 @@ def total_loss(outputs: Mapping[str, jnp.ndarray], batch: Mapping[str, jnp.ndarr
   }
   loss = weights.rec * metrics["rec"] + weights.cvae_kl * metrics["cvae_kl"]
   if "router_probs" in outputs:
-    assignment = outputs.get("posterior_assignment", outputs["router_probs"])
     centred = None
     if "skill_tokens" in outputs and "plug_input" in outputs:
       centred = outputs["skill_tokens"] - outputs["plug_input"][:, None]
     metrics["kl"] = kl_standard_normal(outputs["posterior_mu"], outputs["posterior_logvar"])
     metrics["bsa"] = behaviour_skill_alignment(outputs["router_probs"], outputs["traj_logits"])
-    metrics["sd"] = skill_diversity(outputs["skill_features"], weights.sd_kind, centred,
-                                    assignment.mean(axis=0) if weights.sd_usage_weighted else None)
+    usage = outputs["router_probs"].mean(axis=0) if weights.sd_usage_weighted else None
+    metrics["sd"] = skill_diversity(outputs["skill_features"], weights.sd_kind, centred, usage)
     loss = loss + (weights.kl * metrics["kl"] + weights.bsa * metrics["bsa"]
                    + weights.sd * metrics["sd"])
-    extra = {}
-    if weights.usage:
-      extra["usage"] = (weights.usage, mutual_information_usage(assignment))
-    if weights.load_balance:
-      extra["load_balance"] = (weights.load_balance, load_balance(assignment))
-    if weights.router_z:
-      extra["router_z"] = (weights.router_z, router_z_loss(outputs["router_logits"]))
-    if weights.router_label:
-      if "skill_label" not in batch:
-        raise ValueError("loss.router_label > 0 needs batches with a 'skill_label' (the toy problem's "
-                         "primitive, or train.skill_labels naming a labeller); these batches have none")
-      extra["router_label"] = (weights.router_label, router_label_loss(outputs["router_probs"],
-                                                                       batch["skill_label"]))
-    if "posterior_assignment" in outputs:
-      extra["distill"] = (weights.distill, router_distillation(outputs["router_probs"],
-                                                               outputs["posterior_assignment"]))
-    for name, (w, value) in extra.items():
-      metrics[name] = value
-      loss = loss + w * value
+    for name, term in AUX_TERMS.items():
+      w = getattr(weights, name)
+      if not w:
+        continue
+      missing = [k for k in term.needs if k not in batch]
+      if missing:
+        raise ValueError(f"loss.{name} > 0 needs batches with {', '.join(repr(k) for k in missing)} "
+                         f"({term.why_missing}); these batches have none")
+      metrics[name] = term.value(outputs, batch)
+      loss = loss + w * metrics[name]
     metrics.update(diagnostics.training_metrics(outputs, batch.get("task_id")))
   metrics["loss"] = loss
   return loss, metrics

@@ -4,10 +4,10 @@ Each config dataclass keeps a table {field: Rule} (and, where fields constrain e
 few relations) and calls `check` from its __post_init__. The error names the field, its value
 and what is allowed:
 
-    model.num_skills must be an integer >= 1, got 0
+    model.plug.num_skills must be an integer >= 1, got 0
 
 A field is named from the config that holds it (`model.`, `loss.`, `fewshot.`); `override`
-names it by the full key it was set with (`train.model.num_skills` for the pipeline's --set).
+names it by the full key it was set with (`train.model.plug.num_skills` for the pipeline's --set).
 """
 
 from __future__ import annotations

@@ -1,8 +1,11 @@
 """Synthetic demonstration datasets for tests: random episodes written like `make_demos` writes."""
 
+import dataclasses
 import os
 from pathlib import Path
 
+import jax
+import jax.numpy as jnp
 import numpy as np
 
 import envs
@@ -46,3 +49,37 @@ def state_dataset_name(taskset: str, demos: int = 3) -> str:
   """Where a state-only training run with `demos` per task looks for its dataset (its name holds
   the backend: these synthetic episodes stand in for the C engine's, `auto` on a CPU)."""
   return DemoConfig(taskset=taskset, demos=demos, images=False, backend="mujoco").name
+
+
+# ---- a model's inputs, for the model and switch tests ------------------------------
+MODEL_BATCH = 2
+
+
+def model_config(base, **kw):
+  """`base` (a ModelConfig) with `kw` replaced; PlugConfig's fields may be given flat (num_skills=3)."""
+  from skillplug_jax.model.plug import PlugConfig
+  plug_fields = {f.name for f in dataclasses.fields(PlugConfig)}
+  plug = {k: kw.pop(k) for k in list(kw) if k in plug_fields}
+  return dataclasses.replace(base, **kw, plug=dataclasses.replace(base.plug, **plug))
+
+
+def model_batch(cfg, seed: int = 0):
+  """A training batch of MODEL_BATCH random samples for `cfg` (a ModelConfig); the second
+  sample's episode ends after 2 steps."""
+  rng = np.random.default_rng(seed)
+  batch = dict(
+      joint_pos=rng.normal(size=(MODEL_BATCH, cfg.joint_dim)).astype(np.float32),
+      object_state=rng.normal(size=(MODEL_BATCH, D)).astype(np.float32),
+      actions=rng.normal(size=(MODEL_BATCH, cfg.chunk, cfg.action_dim)).astype(np.float32),
+      action_mask=np.arange(cfg.chunk)[None] < np.array([cfg.chunk, 2])[:, None],
+      task_id=np.arange(MODEL_BATCH, dtype=np.int32))
+  if cfg.use_images:
+    for cam in cfg.cameras:
+      batch[f"{cam}_rgb"] = rng.integers(0, 256, (MODEL_BATCH, *cfg.image_size, 3), dtype=np.uint8)
+  return jax.tree.map(jnp.asarray, batch)
+
+
+def rngs(seed: int = 0) -> dict:
+  """The training pass's rngs ('dropout', 'sample') from one seed."""
+  k1, k2 = jax.random.split(jax.random.key(seed))
+  return {"dropout": k1, "sample": k2}

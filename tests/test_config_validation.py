@@ -15,14 +15,16 @@ from skillplug_jax.data import segments
 from skillplug_jax.experiment import Experiment, FewShot, Variant
 from skillplug_jax.losses import LossWeights
 from skillplug_jax.model import config as model_config
+from skillplug_jax.model import plug as plug_module
 from skillplug_jax.model.config import ModelConfig
+from skillplug_jax.model.plug import PlugConfig
 from skillplug_jax.train import config
 from skillplug_jax.train.config import TrainConfig
 
 TRAIN = TrainConfig(preset="quick", model=ModelConfig())
-BASE = {"model": ModelConfig(), "loss": LossWeights(), "train": TRAIN, "fewshot": FewShot(),
+BASE = {"model": ModelConfig(), "plug": PlugConfig(), "loss": LossWeights(), "train": TRAIN, "fewshot": FewShot(),
         "experiment": Experiment(train=TRAIN)}
-SECTION = {"model": "model.", "loss": "loss.", "train": "", "fewshot": "fewshot.", "experiment": ""}
+SECTION = {"model": "model.", "plug": "model.plug.", "loss": "loss.", "train": "", "fewshot": "fewshot.", "experiment": ""}
 NAN, INF = math.nan, math.inf
 
 # (config, field, a value its rule rejects): every rule, and for ranges each side of it
@@ -37,15 +39,15 @@ REJECTED = [
     ("model", "pre_norm", "true"), ("model", "cvae_zero_init", None), ("model", "normalize_object_state", 0),
     ("model", "latent_dim", 0), ("model", "cvae_enc_layers", -1), ("model", "backbone_width", 0),
     ("model", "backbone_stages", ()), ("model", "backbone_stages", (2, 0, 2)),
-    ("model", "num_skills", 0), ("model", "num_skills", 2.5), ("model", "num_skills", True),
-    ("model", "skill_latent_dim", 0), ("model", "alignment_dim", 0), ("model", "interactor", "attention"),
-    ("model", "router_temperature", 0.0), ("model", "router_temperature", INF), ("model", "plug_site", "middle"),
-    ("model", "skill_offset", "zero"), ("model", "router_input", "none"), ("model", "object_tokens", "many"),
-    ("model", "routing", "top2"), ("model", "fusion_source", "prior"), ("model", "router_cue_slots", -1), ("model", "dtype", "int8"),
+    ("plug", "num_skills", 0), ("plug", "num_skills", 2.5), ("plug", "num_skills", True),
+    ("plug", "skill_latent_dim", 0), ("plug", "alignment_dim", 0), ("plug", "interactor", "attention"),
+    ("plug", "router_temperature", 0.0), ("plug", "router_temperature", INF), ("plug", "site", "middle"),
+    ("plug", "skill_offset", "zero"), ("plug", "router_input", "zero_style"), ("model", "object_tokens", "many"),
+    ("plug", "router_cue_slots", -1), ("model", "dtype", "int8"), ("model", "dtype", "float16"),
     ("model", "hidden", 100),  # not divisible by the 8 heads
     ("model", "object_tokens", "per_object"),  # with use_images=True
-    *[("loss", name, bad) for name in ("rec", "kl", "bsa", "sd", "cvae_kl", "usage", "load_balance", "router_z",
-                                       "distill", "router_label") for bad in (-0.1, NAN)],
+    *[("loss", name, bad) for name in ("rec", "kl", "bsa", "sd", "cvae_kl", "usage", "router_label")
+                             for bad in (-0.1, NAN)],
     ("loss", "sd", INF), ("loss", "sd_kind", "cos"), ("loss", "sd_usage_weighted", "yes"),
     ("train", "preset", ""), ("train", "taskset", ""), ("train", "demos", 0), ("train", "data_seed", -1),
     ("train", "data_dir", ""), ("train", "backend", "bullet"), ("train", "batch_size", 0), ("train", "lr", 0.0),
@@ -68,9 +70,9 @@ REJECTED = [
 # Values at the edge of a rule that mean something and must stay allowed.
 ACCEPTED = [
     ("model", "enc_layers", 0), ("model", "cvae_enc_layers", 0), ("model", "dropout", 0.0),
-    ("model", "dropout", 1.0), ("model", "embed_init_std", 0.0), ("model", "num_skills", 1),
-    ("model", "dtype", "bfloat16"), ("model", "cameras", ("wrist",)), ("model", "router_cue_slots", 0),
-    *[("loss", name, 0.0) for name in ("rec", "kl", "bsa", "sd", "cvae_kl", "distill")],
+    ("model", "dropout", 1.0), ("model", "embed_init_std", 0.0), ("plug", "num_skills", 1),
+    ("model", "dtype", "bfloat16"), ("model", "cameras", ("wrist",)), ("plug", "router_cue_slots", 0),
+    *[("loss", name, 0.0) for name in ("rec", "kl", "bsa", "sd", "cvae_kl")],
     ("train", "max_steps", 0), ("train", "warmup_steps", 0), ("train", "grad_clip", 0.0),
     ("train", "grad_clip", -1.0), ("train", "weight_decay", 0.0), ("train", "trainable", ()),
     ("train", "epochs", 0.5), ("train", "lr", 1), ("train", "backend", "mjx-warp"),
@@ -104,7 +106,7 @@ def test_edge_values_that_mean_something_are_accepted(case):
 
 
 def test_every_rejected_field_has_a_rule_and_every_rule_a_case():
-  tables = {"model": model_config._RULES, "loss": losses._WEIGHT_RULES,
+  tables = {"model": model_config._RULES, "plug": plug_module._RULES, "loss": losses._WEIGHT_RULES,
             "train": config._RULES, "fewshot": experiment._FEWSHOT_RULES, "experiment": experiment._EXPERIMENT_RULES}
   covered = {(kind, field) for kind, field, _ in REJECTED}
   for kind, rules in tables.items():
@@ -115,8 +117,8 @@ def test_every_rejected_field_has_a_rule_and_every_rule_a_case():
 
 
 def test_the_messages_read_as_documented():
-  with pytest.raises(ValueError, match=re.escape("model.num_skills must be an integer >= 1, got 0")):
-    ModelConfig(num_skills=0)
+  with pytest.raises(ValueError, match=re.escape("model.plug.num_skills must be an integer >= 1, got 0")):
+    PlugConfig(num_skills=0)
   with pytest.raises(ValueError, match=re.escape("model.hidden must be divisible by heads (8), got 100")):
     ModelConfig(hidden=100)
   with pytest.raises(ValueError, match=re.escape("max_steps must be an integer >= 0 (0: train `epochs`), got -5")):
@@ -132,12 +134,12 @@ def test_the_messages_read_as_documented():
 
 def test_overrides_name_the_key_they_were_given():
   cfg = experiment.preset("quick")
-  for key, value, shown in (("model.num_skills", "0", "0"), ("max_steps", "-5", "-5"), ("loss.sd", "-1", "-1.0"),
+  for key, value, shown in (("model.plug.num_skills", "0", "0"), ("max_steps", "-5", "-5"), ("loss.sd", "-1", "-1.0"),
                             ("lr", "0", "0.0"), ("model.policy", "diffusion", "'diffusion'")):
     with pytest.raises(validation.ConfigError, match=re.escape(f"{key} must be ")) as info:
       config.override(cfg, [f"{key}={value}"])
     assert str(info.value).startswith(key) and str(info.value).endswith(f"got {shown}")
-  for key, value in (("train.model.num_skills", "0"), ("train.max_steps", "-5"), ("train.loss.kl", "-1"),
+  for key, value in (("train.model.plug.num_skills", "0"), ("train.max_steps", "-5"), ("train.loss.kl", "-1"),
                      ("fewshot.steps", "-1"), ("fewshot.demos", "0"), ("seeds", "0,0"), ("trials", "0")):
     with pytest.raises(validation.ConfigError) as info:
       experiment.get("cpu", [f"{key}={value}"])
@@ -151,15 +153,15 @@ def test_overrides_name_the_key_they_were_given():
 def test_overrides_are_checked_together_not_one_by_one():
   cfg = experiment.preset("quick")  # hidden 64, heads 4
   assert config.override(cfg, ["model.heads=3", "model.hidden=96"]).model.heads == 3  # 64 % 3 in between
-  assert config.override(cfg, ["model.num_skills=0", "model.num_skills=3"]).model.num_skills == 3
+  assert config.override(cfg, ["model.plug.num_skills=0", "model.plug.num_skills=3"]).model.plug.num_skills == 3
   with pytest.raises(validation.ConfigError, match=re.escape("model.hidden must be divisible by heads (5)")):
     config.override(cfg, ["model.hidden=96", "model.heads=5"])
   with pytest.raises(validation.ConfigError):  # the checks are back on after an override, failed or not
-    ModelConfig(num_skills=0)
+    PlugConfig(num_skills=0)
 
 
 def test_the_command_line_stops_before_any_work(capsys, tmp_path):
-  for setting, named in (("model.num_skills=0", "model.num_skills must be an integer >= 1, got 0"),
+  for setting, named in (("model.plug.num_skills=0", "model.plug.num_skills must be an integer >= 1, got 0"),
                          ("max_steps=-5", "max_steps must be an integer >= 0")):
     rc = cli.main(["pretrain", "--config", "quick", "--set", setting, "--workdir", str(tmp_path / "run")])
     assert rc == 2
@@ -169,8 +171,34 @@ def test_the_command_line_stops_before_any_work(capsys, tmp_path):
 
 def test_a_recorded_config_is_checked_when_read():
   d = config.to_dict(TRAIN)
-  d["model"]["num_skills"] = 0
-  with pytest.raises(validation.ConfigError, match=re.escape("model.num_skills must be an integer >= 1, got 0")):
+  d["model"]["plug"]["num_skills"] = 0
+  with pytest.raises(validation.ConfigError, match=re.escape("model.plug.num_skills must be an integer >= 1, got 0")):
+    config.from_dict(d)
+
+
+def _flat_record(cfg: TrainConfig, **model_extra) -> dict:
+  """`cfg` as a config.json written before issue 40 holds it: the plug's settings flat in `model`
+  (plug_site for site), and the arms since removed at their neutral values."""
+  d = config.to_dict(cfg)
+  plug = d["model"].pop("plug")
+  plug["plug_site"] = plug.pop("site")
+  d["model"].update(plug)
+  d["model"].update(dict(routing="soft", fusion_source="router"), **model_extra)
+  d["loss"].update(load_balance=0.0, router_z=0.0, distill=1.0)
+  return d
+
+
+def test_a_config_from_before_the_plug_module_loads_as_it_was_trained():
+  cfg = experiment.preset("cpu")
+  cfg = config.override(cfg, ["model.plug.num_skills=6", "model.plug.site=decoder", "loss.usage=0.5"])
+  assert config.from_dict(_flat_record(cfg)) == cfg
+  for arm, value in (("routing", "top1"), ("fusion_source", "posterior"), ("router_input", "zero_style"),
+                     ("dtype", "float16")):
+    with pytest.raises(ValueError, match=f"removed in issue 40.*{model_config.REMOVED_AT}"):
+      config.from_dict(_flat_record(cfg, **{arm: value}))
+  d = _flat_record(cfg)
+  d["loss"]["router_z"] = 1e-3
+  with pytest.raises(ValueError, match=r"loss.router_z=0.001.*removed in issue 40|removed in issue 40.*router_z"):
     config.from_dict(d)
 
 
@@ -181,8 +209,6 @@ def test_every_shipped_config_builds():
       for policy in arm.policies:
         for seed in arm.seeds:
           assert arm.train_config(policy, seed).model.policy == policy
-  from experiments import toy_skills  # the toy problem's own training settings
-  assert toy_skills.toy_train_config().preset == "toy_skills"
 
 
 def test_copied_names_match_their_source():
@@ -192,5 +218,5 @@ def test_copied_names_match_their_source():
 
 
 def test_the_error_pickles_with_its_fields():  # a pipeline worker's error reaches the parent whole
-  err = pickle.loads(pickle.dumps(validation.ConfigError("num_skills", 0, "an integer >= 1", "model.")))
-  assert str(err) == "model.num_skills must be an integer >= 1, got 0" and err.field == "num_skills"
+  err = pickle.loads(pickle.dumps(validation.ConfigError("num_skills", 0, "an integer >= 1", "model.plug.")))
+  assert str(err) == "model.plug.num_skills must be an integer >= 1, got 0" and err.field == "num_skills"

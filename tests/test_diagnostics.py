@@ -90,36 +90,16 @@ def test_usage_term_rewards_decisive_routing_that_uses_every_skill():
     assert -math.log(k) - 1e-6 <= float(losses.mutual_information_usage(p)) <= 1e-6
 
 
-def test_load_balance_is_one_at_balance_and_k_when_collapsed():
-  k = 4
-  assert float(losses.load_balance(jnp.eye(k)[jnp.arange(8) % k])) == pytest.approx(1.0)
-  assert float(losses.load_balance(jnp.full((8, k), 1 / k))) == pytest.approx(1.0)  # argmax ties: skill 0 ...
-  assert float(losses.load_balance(jnp.eye(k)[jnp.zeros(8, int)])) == pytest.approx(k)
-
-
-def test_router_z_loss_and_distillation_hand_values():
-  assert float(losses.router_z_loss(jnp.zeros((3, 4)))) == pytest.approx(math.log(4) ** 2)
-  assert float(losses.router_z_loss(jnp.full((3, 4), 2.0))) == pytest.approx((2 + math.log(4)) ** 2)
-  r = jnp.asarray([[0.5, 0.25, 0.25]])
-  q = jnp.asarray([[1.0, 0.0, 0.0]])
-  assert float(losses.router_distillation(r, q)) == pytest.approx(math.log(2))
-  g_r, g_q = jax.grad(losses.router_distillation, argnums=(0, 1))(r, q)
-  assert np.all(np.asarray(g_q) == 0) and np.abs(np.asarray(g_r)).max() > 0
-
-
-def _outputs(with_posterior=False):
+def _outputs():
   rng = np.random.default_rng(1)
   b, k, n, d = 4, 3, 2, 5
   logits = jnp.asarray(rng.normal(size=(b, k)), jnp.float32)
   u = jnp.asarray(rng.normal(size=(b, k, n, d)), jnp.float32)
-  out = dict(pred_actions=jnp.zeros((b, 2, 1)), cvae_mu=jnp.zeros((b, 2)), cvae_logvar=jnp.zeros((b, 2)),
-             router_probs=jax.nn.softmax(logits), router_logits=logits, fusion_weights=jax.nn.softmax(logits),
-             skill_features=u.mean(2), skill_tokens=u, plug_input=jnp.asarray(rng.normal(size=(b, n, d)), jnp.float32),
-             posterior_mu=jnp.zeros((b, k, 2)), posterior_logvar=jnp.zeros((b, k, 2)),
-             traj_logits=jnp.asarray(rng.normal(size=(b, k)), jnp.float32))
-  if with_posterior:
-    out["posterior_assignment"] = jax.nn.softmax(out["traj_logits"])
-  return out
+  return dict(pred_actions=jnp.zeros((b, 2, 1)), cvae_mu=jnp.zeros((b, 2)), cvae_logvar=jnp.zeros((b, 2)),
+              router_probs=jax.nn.softmax(logits), router_logits=logits,
+              skill_features=u.mean(2), skill_tokens=u, plug_input=jnp.asarray(rng.normal(size=(b, n, d)), jnp.float32),
+              posterior_mu=jnp.zeros((b, k, 2)), posterior_logvar=jnp.zeros((b, k, 2)),
+              traj_logits=jnp.asarray(rng.normal(size=(b, k)), jnp.float32))
 
 
 BATCH = dict(actions=jnp.zeros((4, 2, 1)), action_mask=jnp.ones((4, 2), bool), task_id=jnp.asarray([0, 0, 1, 2]))
@@ -130,20 +110,20 @@ def test_new_terms_appear_with_their_weights_and_add_to_the_loss():
   base_loss, base = losses.total_loss(out, BATCH)
   terms = {k for k in base if not k.startswith("diag_")}
   assert terms == {"loss", "rec", "cvae_kl", "kl", "bsa", "sd"}
-  w = losses.LossWeights(usage=0.5, load_balance=0.25, router_z=0.1)
-  loss, m = losses.total_loss(out, BATCH, w)
-  assert {"usage", "load_balance", "router_z"} <= set(m) and "distill" not in m
+  labelled = dict(BATCH, skill_label=jnp.asarray([0, 2, 1, 7]))  # 7: outside the library, left out
+  w = losses.LossWeights(usage=0.5, router_label=0.25)
+  loss, m = losses.total_loss(out, labelled, w)
+  assert {k for k in m if not k.startswith("diag_")} == terms | set(losses.AUX_TERMS)
   assert float(m["usage"]) == pytest.approx(float(losses.mutual_information_usage(out["router_probs"])))
-  assert float(loss) == pytest.approx(float(base_loss) + 0.5 * float(m["usage"]) + 0.25 * float(m["load_balance"])
-                                      + 0.1 * float(m["router_z"]), rel=1e-6)
-  # the posterior's assignment: distillation appears, and the routing terms read the assignment
-  post = _outputs(with_posterior=True)
-  _, m = losses.total_loss(post, BATCH, w)
-  assert float(m["distill"]) == pytest.approx(float(losses.router_distillation(post["router_probs"],
-                                                                              post["posterior_assignment"])))
-  assert float(m["usage"]) == pytest.approx(float(losses.mutual_information_usage(post["posterior_assignment"])))
-  _, m2 = losses.total_loss(post, BATCH, losses.LossWeights(sd_kind="gram", sd_usage_weighted=True))
-  assert float(m2["sd"]) != pytest.approx(float(m["sd"]))
+  p = np.asarray(out["router_probs"], np.float64)
+  assert float(m["router_label"]) == pytest.approx(-np.mean(np.log([p[0, 0], p[1, 2], p[2, 1]])), rel=1e-5)
+  assert float(loss) == pytest.approx(float(base_loss) + 0.5 * float(m["usage"]) + 0.25 * float(m["router_label"]),
+                                      rel=1e-6)
+  # a term whose batch key is missing is named, not skipped
+  with pytest.raises(ValueError, match="loss.router_label > 0 needs batches with 'skill_label'"):
+    losses.total_loss(out, BATCH, w)
+  _, m2 = losses.total_loss(out, BATCH, losses.LossWeights(sd_kind="gram", sd_usage_weighted=True))
+  assert float(m2["sd"]) != pytest.approx(float(base["sd"]))
 
 
 def test_diagnostics_change_neither_loss_nor_gradients():

@@ -151,9 +151,10 @@ def test_temporal_ensemble_matches_act_formula():
 
 
 def _tiny_policy(policy="skillplug"):
-  m = dataclasses.replace(experiment.preset("quick").model, policy=policy, hidden=32, heads=2, ff=64, enc_layers=1,
-                          dec_layers=1, cvae_enc_layers=1, num_skills=3, skill_latent_dim=8,
-                          alignment_dim=16, chunk=8)
+  base = experiment.preset("quick").model
+  m = dataclasses.replace(base, policy=policy, hidden=32, heads=2, ff=64, enc_layers=1, dec_layers=1,
+                          cvae_enc_layers=1, chunk=8,
+                          plug=dataclasses.replace(base.plug, num_skills=3, skill_latent_dim=8, alignment_dim=16))
   cfg = train_config.TrainConfig(preset="quick", model=m)
   params = loop.init_params(cfg, jax.random.PRNGKey(1))
   stats = {"action": {"mean": list(envs.robot.HOME_QPOS), "std": [0.01] * 7},
@@ -341,7 +342,7 @@ def _three_configurations() -> list[dict]:
         _run_results("skillplug", 2, {"jujube_pick": ([0, 1, 0, 1], [99, 24, 99, 34]),
                                        "drawer_open": ([1, 1, 0, 0], [44, 54, 99, 99])}, "data_dir=elsewhere")]
   k2 = _run_results("skillplug", 0, {"jujube_pick": ([1, 1, 0, 0], [5, 15, 99, 99]),
-                                      "drawer_open": ([1, 1, 1, 1], [1, 2, 3, 4])}, "model.num_skills=2")
+                                      "drawer_open": ([1, 1, 1, 1], [1, 2, 3, 4])}, "model.plug.num_skills=2")
   act = _run_results("act", 0, {"jujube_pick": ([1, 1, 1, 1], [50, 50, 50, 50]),
                                  "drawer_open": ([1, 0, 1, 1], [60, 99, 60, 60])})
   return [r for run in k4 for r in run] + k2 + act
@@ -352,8 +353,8 @@ def test_rows_are_training_configurations_and_seeds_aggregate():
   k4, k2 = "ACT+SkillPlug (num_skills=4)", "ACT+SkillPlug (num_skills=2)"
   assert list(out["rows"]) == [k4, k2, "ACT"]  # ACT ignores num_skills: its name does not say it
   assert out["rows"][k4]["seeds"] == [0, 1, 2] and out["rows"][k2]["seeds"] == [0]
-  assert out["rows"][k4]["config"]["model.num_skills"] == 4 and "seed" not in out["rows"][k4]["config"]
-  assert out["rows"][k2]["overrides"] == {"model.num_skills": 2, "taskset": "quickstart3"}
+  assert out["rows"][k4]["config"]["model.plug.num_skills"] == 4 and "seed" not in out["rows"][k4]["config"]
+  assert out["rows"][k2]["overrides"] == {"model.plug.num_skills": 2, "taskset": "quickstart3"}
   json.dumps(out)  # the JSON keeps every row's full training key
   success = out["table"]["rows"][k4]
   assert success["seeds"] == 3
@@ -415,7 +416,7 @@ def test_eval_cli_and_pipeline_print_and_write_every_table(tmp_path, monkeypatch
   assert '"ACT+SkillPlug (num_skills=2)"' not in (tmp_path / "ev.csv").read_text()  # no comma: not quoted
   # the pipeline (and so the quickstart) merges its jobs' runs into one set of rows
   act = [r for r in results if r["policy"] == "ACT"]
-  sp = [r for r in results if r["train_seed"] == 0 and r["config"]["model.num_skills"] == 4 and r["policy"] != "ACT"]
+  sp = [r for r in results if r["train_seed"] == 0 and r["config"]["model.plug.num_skills"] == 4 and r["policy"] != "ACT"]
   parts = [dict(pretrain=act, fewshot=act[:1]), dict(pretrain=sp, fewshot=sp[:1])]
   exp = dataclasses.asdict(experiment.get("quick"))
   text = publish.report(dict(

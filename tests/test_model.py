@@ -40,6 +40,8 @@ from skillplug_jax.model.resnet import ResNet18
 from skillplug_jax.model.router import Router
 from skillplug_jax.model.skills import SkillLibrary
 from skillplug_jax.model.transformer import DecoderLayer, TransformerEncoder
+from synthetic import model_batch as make_batch
+from synthetic import model_config, rngs
 
 FAST_COMPILE = {"xla_backend_optimization_level": 0, "xla_llvm_disable_expensive_passes": True}
 TINY = dict(hidden=32, heads=2, ff=64, enc_layers=1, dec_layers=2, cvae_enc_layers=1, chunk=6,
@@ -48,29 +50,10 @@ B = 2
 
 
 def tiny(policy="skillplug", images=False, **kw) -> ModelConfig:
+  """The paper's (images) or the quick preset's model at a tiny size; plug settings may be flat."""
   base = paper() if images else quick()
   extra = dict(image_size=(32, 32), backbone_width=8) if images else {}
-  return dataclasses.replace(base, policy=policy, **{**TINY, **extra, **kw})
-
-
-def make_batch(cfg: ModelConfig, seed: int = 0):
-  rng = np.random.default_rng(seed)
-  batch = dict(
-      joint_pos=rng.normal(size=(B, cfg.joint_dim)).astype(np.float32),
-      object_state=rng.normal(size=(B, envs.OBJECT_STATE_DIM)).astype(np.float32),
-      actions=rng.normal(size=(B, cfg.chunk, cfg.action_dim)).astype(np.float32),
-      # the second sample's episode ends after 2 steps
-      action_mask=np.arange(cfg.chunk)[None] < np.array([cfg.chunk, 2])[:, None],
-      task_id=np.arange(B, dtype=np.int32))
-  if cfg.use_images:
-    for cam in cfg.cameras:
-      batch[f"{cam}_rgb"] = rng.integers(0, 256, (B, *cfg.image_size, 3), dtype=np.uint8)
-  return jax.tree.map(jnp.asarray, batch)
-
-
-def rngs(seed=0):
-  k1, k2 = jax.random.split(jax.random.key(seed))
-  return {"dropout": k1, "sample": k2}
+  return model_config(base, policy=policy, **{**TINY, **extra, **kw})
 
 
 def random_params(module, *args, scale=0.2, seed=0):
@@ -263,7 +246,7 @@ def test_act_halves_shapes(images, positions):
 @pytest.mark.parametrize("name", sorted(INTERACTORS))
 def test_plug_module_shapes(name):
   cfg = tiny()
-  K, N, D = cfg.num_skills, 5, cfg.hidden
+  K, N, D = cfg.plug.num_skills, 5, cfg.hidden
   init = lambda m, *a, **kw: jax.eval_shape(
       lambda: m.init_with_output(jax.random.key(0), *a, **kw)[0])
   assert init(SkillLibrary(K, D)).shape == (K, D)
@@ -306,7 +289,7 @@ def test_latents_start_at_the_prior():
       {"params": jax.random.key(0), **rngs()}, *a)[0], compiler_options=FAST_COMPILE)()
   mu, logvar = init(CVAEEncoder(cfg), batch["joint_pos"], batch["actions"], batch["action_mask"])
   post = init(TrajectorySkillPosterior(cfg.hidden, 8, 16), batch["actions"], batch["action_mask"],
-              jnp.ones((cfg.num_skills, cfg.hidden)))
+              jnp.ones((cfg.plug.num_skills, cfg.hidden)))
   for m, lv in ((mu, logvar), (post["mu"], post["logvar"])):
     assert float(losses.kl_standard_normal(m, lv)) == 0.0
 
@@ -321,12 +304,12 @@ def test_policy_shapes_and_groups(policy, images):
   assert set(variables) == {"params"} and param_groups(variables) == expected
   assert ("backbone" in variables["params"]["encoder"]) == images
   out = jax.eval_shape(lambda v: model.apply(v, batch, train=True, rngs=rngs()), variables)
-  K, z = cfg.num_skills, cfg.skill_latent_dim
+  K, z = cfg.plug.num_skills, cfg.plug.skill_latent_dim
   want = {"pred_actions": (B, cfg.chunk, cfg.action_dim),
           "cvae_mu": (B, cfg.latent_dim), "cvae_logvar": (B, cfg.latent_dim)}
   if policy == "skillplug":
     n = num_tokens(cfg)
-    want.update(router_probs=(B, K), router_logits=(B, K), fusion_weights=(B, K),
+    want.update(router_probs=(B, K), router_logits=(B, K),
                 skill_tokens=(B, K, n, cfg.hidden), plug_input=(B, n, cfg.hidden),
                 skill_features=(B, K, cfg.hidden), posterior_mu=(B, K, z),
                 posterior_logvar=(B, K, z), traj_logits=(B, K))
@@ -343,7 +326,7 @@ def test_policy_shapes_and_groups(policy, images):
   assert act.shape == chunk.shape
   assert (routing is None) == (policy == "act")
   if routing is not None:
-    assert routing.shape == (B, cfg.num_skills)
+    assert routing.shape == (B, cfg.plug.num_skills)
 
 
 def test_bfloat16_compute_keeps_float32_params_and_outputs():
@@ -405,7 +388,12 @@ def test_forward_is_deterministic_given_rngs(tiny_model):
   c = forward(variables, batch, rngs(1))
   assert not np.allclose(a["pred_actions"], c["pred_actions"])
   assert all(np.all(np.isfinite(x)) for x in jax.tree.leaves(a))
-  np.testing.assert_allclose(a["router_probs"].sum(-1), 1.0, rtol=1e-6)
+  # each sample is routed from its own observation: the second sample alone routes as in the batch
+  _, _, _, _, _, predict = tiny_model
+  _, routing = predict(variables, batch)
+  _, alone = predict(variables, jax.tree.map(lambda x: x[1:], batch))
+  np.testing.assert_allclose(alone[0], routing[1], rtol=1e-5, atol=1e-6)
+  assert not np.allclose(routing[0], routing[1], atol=1e-5)  # and the two samples' routings differ
 
 
 def test_predict_ignores_actions_and_posterior(tiny_model):
@@ -427,7 +415,7 @@ def test_fixed_routing_acts_as_the_router_would(tiny_model):
   """A one-hot routing on skill k gives skill k's chunk (different skills, different
   chunks), the same chunk as when the router itself outputs that one-hot."""
   cfg, model, batch, variables, _, _ = tiny_model
-  K = cfg.num_skills
+  K = cfg.plug.num_skills
   onehot = jnp.eye(K)
   fixed = jax.jit(lambda v, o, r: model.apply(v, o, r, method=Policy.predict), compiler_options=FAST_COMPILE)
   chunks = []

@@ -55,7 +55,7 @@ def test_overrides_reach_every_level_and_bad_ones_are_named():
 
 def test_a_variant_may_set_its_own_seeds():
   arms = {v.name: e for v, e in experiment.expand(experiment.get("routing_remedies"))}
-  assert arms["film"].seeds == (0, 1, 2) and arms["film"].train.model.interactor == "film"
+  assert arms["film"].seeds == (0, 1, 2) and arms["film"].train.model.plug.interactor == "film"
   assert arms["temp0.1"].seeds == (0,) and arms["sd0.01"].train.loss.sd == 0.01
   # a command-line seeds override reaches the other arms; the variant's own setting wins
   arms = {v.name: e for v, e in experiment.expand(experiment.get("routing_remedies", ["seeds=1"]))}
@@ -83,13 +83,13 @@ def test_fewshot_protocol_comes_from_the_source_runs_record(tmp_path):
 
 def test_fewshot_without_the_marginal_terms_zeroes_them_alone_in_its_own_folder(tmp_path):
   source = train_config.override(experiment.preset("quick", "skillplug"),
-                                 ["loss.usage=0.5", "loss.load_balance=0.2", "loss.router_z=0.1"])
+                                 ["loss.usage=0.5", "loss.router_label=0.2"])
   kept = fewshot.fewshot_config(source, tmp_path / "src", "block_place", experiment.FewShot())
   assert kept.loss == source.loss  # the default protocol: the source's loss as it was
   dropped = fewshot.fewshot_config(source, tmp_path / "src", "block_place",
                                    experiment.FewShot(marginal_terms=False))
-  assert (dropped.loss.usage, dropped.loss.load_balance) == (0.0, 0.0)
-  assert dataclasses.replace(dropped.loss, usage=0.5, load_balance=0.2) == source.loss  # nothing else
+  assert dropped.loss.usage == 0.0 and dropped.loss.router_label == 0.2  # a per-query term stays
+  assert dataclasses.replace(dropped.loss, usage=0.5) == source.loss  # nothing else
   assert dropped.workdir != kept.workdir and Path(dropped.workdir).name == "block_place"
   assert dataclasses.replace(dropped, loss=kept.loss, workdir=kept.workdir) == kept
 
@@ -129,7 +129,7 @@ def test_cosine_schedule_warms_up_then_decays_to_zero():
 TINY = ["train.taskset=jujube_pick,drawer_open", "train.demos=2", "train.max_steps=4", "train.batch_size=4",
         "train.warmup_steps=1", "train.log_every=2", "train.ckpt_every=2", "train.model.hidden=32",
         "train.model.heads=2", "train.model.ff=64", "train.model.enc_layers=1", "train.model.dec_layers=1",
-        "train.model.num_skills=3", "train.model.skill_latent_dim=8", "train.model.alignment_dim=16",
+        "train.model.plug.num_skills=3", "train.model.plug.skill_latent_dim=8", "train.model.plug.alignment_dim=16",
         "train.model.chunk=10", "trials=3", "eval_batch=3", "fewshot.taskset=mouse_push", "fewshot.demos=2",
         "fewshot.steps=2", "workers=1"]
 
@@ -206,7 +206,7 @@ def _edited_configs(dest: Path) -> Path:
 def _rows_of(run: Path) -> dict:
   """The run's row beside a K=2 run of the same record, named as evaluation names them."""
   cfg, record = run_files.read_config(run), run_files.read_record(run)
-  other = train_config.override(cfg, ["model.num_skills=2"])
+  other = train_config.override(cfg, ["model.plug.num_skills=2"])
   return groups.group_rows([groups.row_fields(c, record) for c in (cfg, other)])
 
 
@@ -222,7 +222,7 @@ def test_a_run_records_its_fewshot_protocol_and_overrides(tiny_run):
   cfg = run_files.read_config(run)
   assert cfg == train_config.from_dict({k: v for k, v in saved.items() if k != "experiment"})
   overrides = groups.row_fields(cfg, run_files.read_record(run))["overrides"]
-  assert overrides["model.hidden"] == 32 and overrides["model.num_skills"] == 3 and "lr" not in overrides
+  assert overrides["model.hidden"] == 32 and overrides["model.plug.num_skills"] == 3 and "lr" not in overrides
   # every result carries them, and a few-shot run keeps its source's record
   assert all(r["overrides"] == overrides for r in summary["pretrain"]["results"] + summary["fewshot"]["results"]
              if r["policy"] == "ACT+SkillPlug")
@@ -319,7 +319,7 @@ def test_variants_run_in_their_own_folders_and_join_the_reference_rows(tiny_run)
   exp = dataclasses.replace(
       experiment.get("quick", TINY), policies=("skillplug",), reference=str(ref_out / "published" / "summary.json"),
       variants=(experiment.Variant("nosd", ("train.loss.sd=0",), "-SD"),
-                experiment.Variant("k2", ("train.model.num_skills=2", "run_fewshot=false"), "K=2")))
+                experiment.Variant("k2", ("train.model.plug.num_skills=2", "run_fewshot=false"), "K=2")))
   out = ref_out / "variants"
   summary = pipeline.run(exp, out)
   assert sorted(p.name for p in out.iterdir()) == ["datasets", "k2", "nosd"]
@@ -357,8 +357,8 @@ def test_pipeline_cli_rejects_bad_configs(capsys):
   assert "unknown config 'nope'" in capsys.readouterr().err
   assert pipeline.main(["--config", "quick", "--set", "seeds="]) == 2
   assert "seeds must be a non-empty tuple of distinct integers >= 0, got ()" in capsys.readouterr().err
-  assert pipeline.main(["--config", "k_sweep", "--set", "train.model.num_skills=0"]) == 2
-  assert "train.model.num_skills must be an integer >= 1, got 0" in capsys.readouterr().err
+  assert pipeline.main(["--config", "k_sweep", "--set", "train.model.plug.num_skills=0"]) == 2
+  assert "train.model.plug.num_skills must be an integer >= 1, got 0" in capsys.readouterr().err
 
 
 def test_routing_statistics_tell_uniform_from_specialised(tmp_path):

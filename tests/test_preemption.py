@@ -93,8 +93,8 @@ def test_cli_pretrain_stops_on_sigterm_with_the_resume_command(data_dir, tmp_pat
   one the run had reached, and the message says how to resume."""
   run = tmp_path / "cli"
   overrides = ["demos=3", f"data_dir={data_dir}", "model.hidden=32", "model.heads=2", "model.ff=64",
-               "model.enc_layers=1", "model.dec_layers=1", "model.cvae_enc_layers=1", "model.num_skills=3",
-               "model.skill_latent_dim=8", "model.alignment_dim=16", "model.chunk=10", "batch_size=4",
+               "model.enc_layers=1", "model.dec_layers=1", "model.cvae_enc_layers=1", "model.plug.num_skills=3",
+               "model.plug.skill_latent_dim=8", "model.plug.alignment_dim=16", "model.chunk=10", "batch_size=4",
                "max_steps=1000000", "log_every=2", "ckpt_every=1000000", "warmup_steps=2"]
   cmd = [sys.executable, "-m", "skillplug_jax.cli", "pretrain", "--config", "quick", "--taskset",
          "jujube_pick,kiwi_place", "--workdir", str(run)] + [a for o in overrides for a in ("--set", o)]
@@ -128,8 +128,8 @@ def test_pipeline_stops_every_worker_cleanly_on_sigint(data_dir, tmp_path):  # n
   overrides = ["train.taskset=jujube_pick,kiwi_place", "train.demos=3", "train.max_steps=1000000",
                "train.batch_size=4", "train.warmup_steps=1", "train.log_every=2", "train.ckpt_every=1000000",
                "train.model.hidden=32", "train.model.heads=2", "train.model.ff=64", "train.model.enc_layers=1",
-               "train.model.dec_layers=1", "train.model.num_skills=3", "train.model.skill_latent_dim=8",
-               "train.model.alignment_dim=16", "train.model.chunk=10", "run_fewshot=false", "workers=2",
+               "train.model.dec_layers=1", "train.model.plug.num_skills=3", "train.model.plug.skill_latent_dim=8",
+               "train.model.plug.alignment_dim=16", "train.model.chunk=10", "run_fewshot=false", "workers=2",
                "seeds=0,1"]
   cmd = [sys.executable, "-m", "experiments.pipeline", "--config", "quick", "--out", str(out)]
   cmd += [a for o in overrides for a in ("--set", o)]
@@ -181,8 +181,8 @@ def test_soak_repeated_kill_9_ends_bit_identical(data_dir, tmp_path):  # noqa: F
   an uninterrupted one, bit for bit."""
   from benchmarks import soak_kill
   overrides = ("demos=3", f"data_dir={data_dir}", "model.hidden=32", "model.heads=2", "model.ff=64",
-               "model.enc_layers=1", "model.dec_layers=1", "model.cvae_enc_layers=1", "model.num_skills=3",
-               "model.skill_latent_dim=8", "model.alignment_dim=16", "model.chunk=10", "batch_size=4",
+               "model.enc_layers=1", "model.dec_layers=1", "model.cvae_enc_layers=1", "model.plug.num_skills=3",
+               "model.plug.skill_latent_dim=8", "model.plug.alignment_dim=16", "model.chunk=10", "batch_size=4",
                "warmup_steps=2")
   result = soak_kill.soak(tmp_path, kills=2, steps=120, ckpt_every=10, seed=1, overrides=overrides, env=ENV,
                           log=lambda *a: None, in_process=True)

@@ -1,5 +1,9 @@
 """Each switch of issue 27 does what it says, and the defaults are the model as it was.
 
+The switches of the plug are `model.plug.*` (model/plug.py); those removed in issue 40 (top-1
+routing, posterior fusion, router_input='zero_style', load balance, router z-loss) are gone
+from here with them.
+
 One tiny state-only model (hidden 32, K=3), compiled without XLA's
 optimisation passes; parameters are drawn on the host so that routing and
 latents are away from their zero starts.
@@ -19,10 +23,12 @@ import pytest
 
 import envs
 from skillplug_jax import losses
-from skillplug_jax.model import GROUPS, ModelConfig, Policy, masked_optimizer, param_groups
+from skillplug_jax.model import GROUPS, ModelConfig, PlugConfig, Policy, masked_optimizer, param_groups
 from skillplug_jax.model.act import Encoder, num_tokens
 from skillplug_jax.model.interactor import INTERACTORS
 from skillplug_jax.model.posterior import TrajectorySkillPosterior
+from synthetic import model_batch as make_batch
+from synthetic import model_config, rngs
 
 FAST_COMPILE = {"xla_backend_optimization_level": 0, "xla_llvm_disable_expensive_passes": True}
 TINY = dict(hidden=32, heads=2, ff=64, enc_layers=1, dec_layers=2, cvae_enc_layers=1, chunk=6,
@@ -32,28 +38,12 @@ B = 2
 
 def tiny(policy="skillplug", **kw) -> ModelConfig:
   """The reference model of the defaults test; the other tests take one decoder layer
-  (`small`), which compiles faster."""
-  return ModelConfig(policy=policy, use_images=False, **{**TINY, **kw})
+  (`small`), which compiles faster. Plug settings may be given flat (num_skills=3)."""
+  return model_config(ModelConfig(policy=policy, use_images=False), **{**TINY, **kw})
 
 
 def small(policy="skillplug", **kw) -> ModelConfig:
   return tiny(policy, **{"dec_layers": 1, **kw})
-
-
-def make_batch(cfg: ModelConfig, seed: int = 0):
-  rng = np.random.default_rng(seed)
-  batch = dict(
-      joint_pos=rng.normal(size=(B, cfg.joint_dim)).astype(np.float32),
-      object_state=rng.normal(size=(B, envs.OBJECT_STATE_DIM)).astype(np.float32),
-      actions=rng.normal(size=(B, cfg.chunk, cfg.action_dim)).astype(np.float32),
-      action_mask=np.arange(cfg.chunk)[None] < np.array([cfg.chunk, 2])[:, None],
-      task_id=np.arange(B, dtype=np.int32))
-  return jax.tree.map(jnp.asarray, batch)
-
-
-def rngs(seed=0):
-  k1, k2 = jax.random.split(jax.random.key(seed))
-  return {"dropout": k1, "sample": k2}
 
 
 def host_params(cfg: ModelConfig, scale=0.2, seed=0):
@@ -152,12 +142,13 @@ def test_defaults_reproduce_the_model_and_loss_from_before(policy):
 
 
 def test_switch_values_are_checked():
-  for name in ("plug_site", "skill_offset", "router_input", "object_tokens", "routing", "fusion_source",
-               "interactor"):
+  for name in ("site", "skill_offset", "router_input", "object_tokens", "interactor"):
     with pytest.raises(ValueError, match=name):
       small(**{name: "nonsense"})
   with pytest.raises(ValueError, match="state-only"):
     ModelConfig(use_images=True, object_tokens="per_object")
+  with pytest.raises(ValueError, match="model.plug.site"):
+    PlugConfig(site="middle")
   with pytest.raises(ValueError, match="sd_kind"):
     losses.LossWeights(sd_kind="cos")
 
@@ -196,7 +187,7 @@ def test_skill_offset_sample_mean_none():
   skills = variables["params"]["skills"]["embeddings"]
   codes = {}
   for mode in ("sample", "mean", "none"):
-    c = dataclasses.replace(cfg, skill_offset=mode)
+    c = model_config(cfg, skill_offset=mode)
     codes[mode] = [_interactor_codes_fn(c)(variables, batch, jax.random.key(seed)) for seed in (0, 1)]
   a, b = codes["sample"]
   assert not np.allclose(a["skills"], b["skills"])
@@ -230,23 +221,10 @@ def test_router_input_no_style_does_not_read_the_style_token():
   batch = make_batch(cfg)
   variables = host_params(cfg)
   for mode, moves in (("all", True), ("no_style", False)):
-    c = dataclasses.replace(cfg, router_input=mode)
+    c = model_config(cfg, router_input=mode)
     r0 = _routing_with_style_token(c)(variables, batch, 0.0)
     r1 = _routing_with_style_token(c)(variables, batch, 5.0)
     assert (not np.allclose(r0, r1, atol=1e-5)) == moves, mode
-
-
-def test_router_input_zero_style_routes_as_at_inference():
-  """'zero_style': the training pass routes from the tokens the inference path sees (style
-  latent zero), so its routing is predict's; with 'all' the CVAE latent moves it."""
-  cfg = small()
-  batch = make_batch(cfg)
-  variables = host_params(cfg)
-  for mode, same in (("zero_style", True), ("all", False)):
-    c = dataclasses.replace(cfg, router_input=mode)
-    train_routing = forward(c, variables, batch, train=False)["router_probs"]
-    _, routing = predict(c, variables, batch)
-    assert np.allclose(train_routing, routing, rtol=1e-5, atol=1e-6) == same, mode
 
 
 def test_router_cue_reaches_the_router_alone():
@@ -257,14 +235,14 @@ def test_router_cue_reaches_the_router_alone():
   for n, cue_moves_actions in ((0, True), (2, False)):
     cfg = small(router_cue_slots=n)
     variables = host_params(cfg)
-    fixed = jnp.full((cfg.num_skills,), 1.0 / cfg.num_skills)
+    fixed = jnp.full((cfg.plug.num_skills,), 1.0 / cfg.plug.num_skills)
     (a0, r0), (a1, r1) = (_predict_fixed_fn(cfg)(variables, b, fixed) for b in (batch, moved))
     assert not np.allclose(r0, r1, atol=1e-5), n  # the router reads the cue either way
     assert (not np.allclose(a0, a1, atol=1e-5)) == cue_moves_actions, n
     t0, t1 = (forward(cfg, variables, b, train=False)["router_probs"] for b in (batch, moved))
     assert not np.allclose(t0, t1, atol=1e-5), n
   with pytest.raises(ValueError, match="router_cue_slots"):
-    ModelConfig(router_cue_slots=-1)
+    PlugConfig(router_cue_slots=-1)
 
 
 @functools.lru_cache(maxsize=None)
@@ -325,72 +303,8 @@ def test_per_object_tokens():
                    jnp.zeros((B, cfg.latent_dim)))
 
 
-# ---- remedies beyond the paper ----------------------------------------------------
-def test_top1_routes_one_hot_with_softmax_gradients():
-  cfg = small(routing="top1")
-  batch = make_batch(cfg)
-  variables = host_params(cfg)
-  out = forward(cfg, variables, batch)
-  w, r = np.asarray(out["fusion_weights"]), np.asarray(out["router_probs"])
-  np.testing.assert_allclose(w, np.eye(cfg.num_skills)[r.argmax(-1)], atol=1e-6)
-  assert r.max() < 0.999  # the router itself stays soft
-  _, routing = predict(cfg, variables, batch)
-  np.testing.assert_array_equal(routing, np.eye(cfg.num_skills)[np.asarray(routing).argmax(-1)])
-  # straight-through: reconstruction reaches the router
-  g, _ = grads_of(cfg, variables, batch, losses.LossWeights(kl=0, bsa=0, sd=0))
-  assert any(np.abs(x).max() > 0 for x in jax.tree.leaves(g["params"]["router"]))
-
-
-def test_fusion_from_the_posterior_and_router_distilled_to_it():
-  """fusion_source='posterior': training fuses with a hard sample of softmax(traj_logits);
-  the router learns from the distillation term alone; inference routes with the router."""
-  cfg = small(fusion_source="posterior")
-  batch = make_batch(cfg)
-  variables = host_params(cfg)
-  out = forward(cfg, variables, batch)
-  w = np.asarray(out["fusion_weights"])
-  np.testing.assert_allclose(w.sum(-1), 1.0, atol=1e-6)
-  np.testing.assert_allclose(w.max(-1), 1.0, atol=1e-6)
-  np.testing.assert_allclose(out["posterior_assignment"], jax.nn.softmax(out["traj_logits"]), rtol=1e-6)
-  # without noise (train=False) the fusion is the posterior's mode
-  val = forward(cfg, variables, batch, train=False)
-  np.testing.assert_array_equal(np.asarray(val["fusion_weights"]).argmax(-1), np.asarray(val["traj_logits"]).argmax(-1))
-
-  # the fusion follows the posterior: a posterior sure of skill j gives skill j in every draw
-  model = Policy(cfg)
-
-  def sure_of(v, b, key, bias):
-    def intercept(next_fun, args, kwargs, context):
-      out = next_fun(*args, **kwargs)
-      if isinstance(context.module, TrajectorySkillPosterior) and context.method_name == "__call__":
-        return dict(out, traj_logits=out["traj_logits"] + bias)
-      return out
-    with nn.intercept_methods(intercept):
-      return model.apply(v, b, train=True, rngs=_rngs(key))["fusion_weights"]
-
-  sure_of = jax.jit(sure_of, compiler_options=FAST_COMPILE)
-  for j in range(cfg.num_skills):
-    for seed in range(3):
-      fw = sure_of(variables, batch, jax.random.key(seed), 50.0 * jax.nn.one_hot(j, cfg.num_skills))
-      np.testing.assert_allclose(fw, jnp.broadcast_to(jax.nn.one_hot(j, cfg.num_skills), fw.shape), atol=1e-6)
-
-  # the router's gradient comes from the distillation term alone (weight 1 by default)
-  def split_terms(v):
-    loss, m = losses.total_loss(model.apply(v, batch, train=True, rngs=rngs()), batch)
-    return jnp.stack([loss - m["distill"], m["distill"]])
-
-  g = jax.jit(jax.jacrev(split_terms), compiler_options=FAST_COMPILE)(variables)["params"]
-  assert all(np.all(x[0] == 0) for x in jax.tree.leaves(g["router"]))
-  assert any(np.abs(x[1]).max() > 0 for x in jax.tree.leaves(g["router"]))
-  assert any(np.abs(x[0]).max() > 0 for x in jax.tree.leaves(g["posterior"]["g_tau"]))  # fusion -> posterior
-  # inference: the router's own (hard) choice
-  _, routing = predict(cfg, variables, batch)
-  r = forward(cfg, variables, batch, train=False)["router_probs"]
-  np.testing.assert_array_equal(routing, np.eye(cfg.num_skills)[np.asarray(r).argmax(-1)])
-
-
 def _to_decoder_layout(params):
-  """Default-layout parameters regrouped for plug_site='decoder' (the same values)."""
+  """Default-layout parameters regrouped for plug.site='decoder' (the same values)."""
   params = dict(params)
   head = dict(params["action_head"])
   params["action_proj"] = {k: head.pop(k) for k in ("final_norm", "action_proj")}
@@ -400,10 +314,10 @@ def _to_decoder_layout(params):
 
 @pytest.mark.parametrize("policy", ["act", "skillplug"])
 def test_decoder_site_groups_and_light_head(policy):
-  """plug_site='decoder': the head splits into action_head (queries, decoder) and action_proj
+  """plug.site='decoder': the head splits into action_head (queries, decoder) and action_proj
   (final norm, projection) for both policies; ACT's forward is unchanged by the split; the
   plug reads the decoder's steps; freezing all but router and action_proj trains only those."""
-  cfg = small(policy, plug_site="decoder")
+  cfg = small(policy, site="decoder")
   batch = make_batch(cfg)
   variables = host_params(cfg)
   groups = param_groups(variables)
@@ -420,10 +334,10 @@ def test_decoder_site_groups_and_light_head(policy):
   else:
     out = forward(cfg, variables, batch)
     assert out["plug_input"].shape == (B, cfg.chunk, cfg.hidden)
-    assert out["skill_tokens"].shape == (B, cfg.num_skills, cfg.chunk, cfg.hidden)
-    assert out["router_probs"].shape == (B, cfg.num_skills)  # chunk-level routing
+    assert out["skill_tokens"].shape == (B, cfg.plug.num_skills, cfg.chunk, cfg.hidden)
+    assert out["router_probs"].shape == (B, cfg.plug.num_skills)  # chunk-level routing
     _, routing = predict(cfg, variables, batch)
-    assert routing.shape == (B, cfg.num_skills)
+    assert routing.shape == (B, cfg.plug.num_skills)
     trainable = {"router", "action_proj"}
   grads = jax.tree.map(jnp.ones_like, variables)  # what is masked, not what the loss gives
   opt = masked_optimizer(optax.adam(1e-2), variables, trainable)
@@ -435,31 +349,36 @@ def test_decoder_site_groups_and_light_head(policy):
     assert changed == (name in trainable), name
 
 
-@pytest.mark.parametrize("kw", [dict(interactor="skill_tokens", plug_site="decoder", positions="qk"),
-                                dict(object_tokens="per_object", routing="top1", skill_offset="mean"),
-                                dict(fusion_source="posterior", router_input="zero_style")])
+@pytest.mark.parametrize("kw", [dict(interactor="skill_tokens", site="decoder", positions="qk"),
+                                dict(object_tokens="per_object", skill_offset="mean", router_input="no_style",
+                                     router_cue_slots=1)])
 def test_switches_combine_and_train_finite(kw):
   cfg = small(**kw)
-  batch = make_batch(cfg)
+  batch = dict(make_batch(cfg), skill_label=jnp.array([0, 2], jnp.int32))
   variables = host_params(cfg)
   model = Policy(cfg)
-  w = losses.LossWeights(sd_kind="gram", sd_usage_weighted=True, usage=0.5, load_balance=0.1, router_z=1e-3)
+  w = losses.LossWeights(sd_kind="gram", sd_usage_weighted=True, usage=0.5, router_label=0.1)
   loss, m = jax.jit(lambda v: losses.total_loss(model.apply(v, batch, train=True, rngs=rngs()), batch, w),
                     compiler_options=FAST_COMPILE)(variables)
-  assert {"usage", "load_balance", "router_z"} <= set(m)
+  assert {"usage", "router_label"} <= set(m)
   assert np.isfinite(float(loss)) and all(np.isfinite(np.asarray(x)).all() for x in m.values())
 
 
-@pytest.mark.parametrize("kw", [dict(), dict(plug_site="decoder")])
+@pytest.mark.parametrize("kw", [dict(), dict(site="decoder")])
 def test_plug_geometry_of_a_model_reads_the_inference_path(kw):
   from skillplug_jax import diagnostics
   cfg = small(**kw)
   batch = make_batch(cfg)
   variables = host_params(cfg)
   g = diagnostics.plug_geometry(cfg, variables["params"], batch)
-  k = cfg.num_skills
+  k = cfg.plug.num_skills
   assert g["cos_signed"].shape == g["cos_abs_centred"].shape == (k, k)
-  np.testing.assert_allclose(np.diag(g["cos_signed"]), 1.0, rtol=1e-5)
+  # the cosines of the inference path's token-averaged u_k, computed here by hand
+  f = jax.jit(lambda v, o: Policy(cfg).apply(v, o, method=Policy.features),
+              compiler_options=FAST_COMPILE)(variables, batch)
+  mean_u = np.asarray(f["skill_tokens"], np.float64).mean(axis=2)
+  unit = mean_u / np.linalg.norm(mean_u, axis=-1, keepdims=True)
+  np.testing.assert_allclose(g["cos_signed"], np.einsum("bkd,bjd->bkj", unit, unit).mean(0), rtol=1e-4, atol=1e-5)
   assert float(g["fused_offset_ratio"]) > 0 and np.isfinite(float(g["token_spread"]))
   _, routing = predict(cfg, variables, batch)
   np.testing.assert_allclose(g["routing"]["mean_routing"], np.asarray(routing).mean(0), rtol=1e-5)

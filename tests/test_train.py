@@ -40,8 +40,8 @@ def tiny(data_dir, workdir, policy="skillplug", *extra):
   return config.override(cfg, [
       "taskset=jujube_pick,kiwi_place", "demos=3", f"data_dir={data_dir}", f"workdir={workdir}",
       "model.hidden=32", "model.heads=2", "model.ff=64", "model.enc_layers=1", "model.dec_layers=2",
-      "model.cvae_enc_layers=1", "model.num_skills=3", "model.skill_latent_dim=8",
-      "model.alignment_dim=16", "model.chunk=10", "batch_size=4", "max_steps=6", "log_every=2",
+      "model.cvae_enc_layers=1", "model.plug.num_skills=3", "model.plug.skill_latent_dim=8",
+      "model.plug.alignment_dim=16", "model.chunk=10", "batch_size=4", "max_steps=6", "log_every=2",
       "ckpt_every=3", "warmup_steps=2", *extra])
 
 

@@ -10,13 +10,13 @@ tokens into a latent held near the prior: 2 layers.
 """
 
 from skillplug_jax.experiment import Experiment, FewShot
-from skillplug_jax.model.config import ModelConfig
+from skillplug_jax.model import ModelConfig, PlugConfig
 from skillplug_jax.train.config import TrainConfig
 
 
 def get_config() -> Experiment:
   model = ModelConfig(hidden=256, heads=8, ff=1024, backbone_width=32, enc_layers=4, dec_layers=4,
-                      cvae_enc_layers=2, alignment_dim=64)
+                      cvae_enc_layers=2, plug=PlugConfig(alignment_dim=64))
   train = TrainConfig(preset="budget", model=model, demos=100, batch_size=64, lr=3e-4, warmup_steps=500,
                       max_steps=20_000, ckpt_every=2000)
   return Experiment(train=train, seeds=(0, 1, 2), trials=50, fewshot=FewShot(steps=2000))

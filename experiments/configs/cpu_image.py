@@ -17,14 +17,14 @@ the differences lie within one seed's noise.
 """
 
 from skillplug_jax.experiment import Experiment, FewShot
-from skillplug_jax.model.config import ModelConfig
+from skillplug_jax.model import ModelConfig, PlugConfig
 from skillplug_jax.train.config import TrainConfig
 
 
 def get_config() -> Experiment:
   model = ModelConfig(use_images=True, cameras=("side", "wrist"), image_size=(64, 64), backbone_width=16,
                       backbone_stages=(1, 1, 1), hidden=64, heads=4, ff=256, enc_layers=2, dec_layers=2,
-                      cvae_enc_layers=1, num_skills=4, skill_latent_dim=16, alignment_dim=32)
+                      cvae_enc_layers=1, plug=PlugConfig(num_skills=4, skill_latent_dim=16, alignment_dim=32))
   train = TrainConfig(preset="cpu_image", model=model, demos=100, batch_size=32, lr=1e-3, warmup_steps=200,
                       lr_schedule="cosine", max_steps=10_000, log_every=100, ckpt_every=1000)
   return Experiment(train=train, seeds=(0, 1, 2), trials=50, fewshot=FewShot(demos=10, steps=0))

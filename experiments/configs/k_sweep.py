@@ -18,4 +18,4 @@ def get_config() -> Experiment:
   return dataclasses.replace(
       load("cpu", Path(__file__).parent), policies=("skillplug",), seeds=(0,), run_fewshot=False,
       reference="docs/results/paper_cpu/summary.json",
-      variants=tuple(Variant(f"k{k}", (f"train.model.num_skills={k}",), f"K={k}") for k in (2, 6, 8)))
+      variants=tuple(Variant(f"k{k}", (f"train.model.plug.num_skills={k}",), f"K={k}") for k in (2, 6, 8)))

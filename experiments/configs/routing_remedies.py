@@ -35,6 +35,6 @@ def get_config() -> Experiment:
   return dataclasses.replace(
       load("cpu", Path(__file__).parent), policies=("skillplug",), seeds=(0,), run_fewshot=False,
       reference="docs/results/paper_cpu/summary.json",
-      variants=(Variant("temp0.1", ("train.model.router_temperature=0.1",), "router T=0.1"),
-                Variant("film", ("train.model.interactor=film", "seeds=0,1,2"), "FiLM interactor"),
+      variants=(Variant("temp0.1", ("train.model.plug.router_temperature=0.1",), "router T=0.1"),
+                Variant("film", ("train.model.plug.interactor=film", "seeds=0,1,2"), "FiLM interactor"),
                 Variant("sd0.01", ("train.loss.sd=0.01",), "lambda_SD=0.01")))

@@ -12,18 +12,16 @@ Readings within the paper's text:
   per_object  the object state as one token per object, ACT and ACT+SkillPlug
               (act_per_object: its ACT arm alone)
   tokens      the skill as a key/value token (interactor=skill_tokens), s_k without the
-              posterior's sampled offset (skill_offset=none), the router blind to the
-              training-only style token (router_input=no_style)
+              posterior's sampled offset (plug.skill_offset=none), the router blind to the
+              training-only style token (plug.router_input=no_style)
   decoder     the plug on the decoder's per-step outputs, f_act the action projection;
               few-shot retrains a light head in both arms (ACT: action_proj; ACT+SkillPlug:
               action_proj and router), so this variant runs its own ACT arm
-Remedies of ours (not the paper's):
+Remedies of ours (not the paper's; the screen's posterior-fusion and top-1 arms were removed in
+issue 40, their results reproducible at commit 5dddeed: docs/training.md):
   usage       + 0.5 (H(mean r) - mean H(r)) penalty: routing that is used and decisive
   usage_sq    usage, with L_SD on squared cosines weighted by r_k r_j (antipodal pairs
               become the worst case, and unused skills cannot satisfy it)
-  posterior   fusion trained on the posterior's skill assignment q(k | tau) (Gumbel,
-              straight-through), the router distilled to it
-  top1        hard top-1 routing (straight-through) with the usage term
   per_object_usage  one token per object (a reading; its own ACT arm is variant
               per_object) with the usage term: on the toy problem (seed 0) the one
               skill-library variant that routed decisively over ~4 skills and kept
@@ -57,16 +55,14 @@ def get_config() -> Experiment:
       load("cpu", Path(__file__).parent), policies=("skillplug",), seeds=(0,),
       reference="docs/results/paper_cpu/summary.json",
       variants=(
-          Variant("tokens", ("train.model.interactor=skill_tokens", "train.model.skill_offset=none",
-                             "train.model.router_input=no_style"), "skill tokens, no z offset, no style"),
-          Variant("decoder", ("train.model.plug_site=decoder", "policies=act,skillplug",
+          Variant("tokens", ("train.model.plug.interactor=skill_tokens", "train.model.plug.skill_offset=none",
+                             "train.model.plug.router_input=no_style"), "skill tokens, no z offset, no style"),
+          Variant("decoder", ("train.model.plug.site=decoder", "policies=act,skillplug",
                               "fewshot.trainable_act=action_proj",
                               "fewshot.trainable_skillplug=action_proj,router"), "plug on the decoder"),
           Variant("usage", USAGE, "usage 0.5 (ours)"),
           Variant("usage_sq", USAGE + ("train.loss.sd_kind=squared", "train.loss.sd_usage_weighted=true"),
                   "usage 0.5 + squared SD (ours)"),
-          Variant("posterior", ("train.model.fusion_source=posterior",), "fusion on q(k|tau) (ours)"),
-          Variant("top1", USAGE + ("train.model.routing=top1",), "top-1 + usage (ours)"),
           Variant("per_object", (PER_OBJECT, "policies=act,skillplug"), "one token per object"),
           Variant("act_per_object", (PER_OBJECT, "policies=act"), "ACT, one token per object"),
           Variant("per_object_usage", (PER_OBJECT,) + USAGE, "one token per object + usage 0.5 (ours)"),

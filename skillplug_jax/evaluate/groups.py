@@ -26,16 +26,19 @@ import json
 import sys
 from typing import Any, Mapping, Sequence
 
-from skillplug_jax import experiment
+from skillplug_jax import experiment, losses
+from skillplug_jax.model import config as model_config
+from skillplug_jax.model.plug import PlugConfig
 from skillplug_jax.train import config as train_config
 
 # Where and how often, not what: two runs differing only in these trained the same thing.
 NOT_TRAINING = frozenset({"seed", "workdir", "data_dir", "init_from", "log_every", "ckpt_every",
                           "keep_checkpoints"})
 # Settings only ACT+SkillPlug reads: an ACT row's name never mentions them.
-SKILLPLUG_ONLY = frozenset({"model.num_skills", "model.skill_latent_dim", "model.alignment_dim",
-                            "model.interactor", "model.router_temperature", "loss.kl", "loss.bsa",
-                            "loss.sd"} | {"model.skill_offset", "model.router_input", "model.routing", "model.fusion_source", "loss.sd_kind", "loss.sd_usage_weighted", "loss.usage", "loss.load_balance", "loss.router_z", "loss.distill"})
+# (model.plug.site is not among them: it also decides ACT's light head.)
+SKILLPLUG_ONLY = frozenset({f"model.plug.{f.name}" for f in dataclasses.fields(PlugConfig) if f.name != "site"}
+                           | {"loss.kl", "loss.bsa", "loss.sd", "loss.sd_kind", "loss.sd_usage_weighted"}
+                           | {f"loss.{name}" for name in losses.AUX_TERMS})
 
 
 def policy_label(cfg: train_config.TrainConfig) -> str:
@@ -80,6 +83,16 @@ def normalised(key: Mapping[str, Any]) -> dict:
   return training_key(train_config.from_dict(nested))
 
 
+def normalised_result(r: Mapping[str, Any]) -> dict:
+  """A result as today's code writes it: its training key `normalised`, its overrides under
+  today's names (a removed arm at its neutral value is no override: `model.config.REMOVED_ARMS`)."""
+  out = dict(r, config=normalised(r["config"]))
+  if "overrides" in r:
+    out["overrides"] = {model_config.legacy_name(k): v for k, v in r["overrides"].items()
+                        if k not in model_config.REMOVED_ARMS and k != "loss.distill"}
+  return out
+
+
 def overrides(key: Mapping[str, Any], defaults: Mapping[str, Any]) -> dict:
   """The settings of a training key that differ from `defaults`, its preset's training key."""
   return {k: v for k, v in key.items() if defaults.get(k) != v}
@@ -98,8 +111,13 @@ def todays_overrides(key: Mapping[str, Any]) -> dict:
   return overrides(key, training_key(experiment.preset(key["preset"], key["model.policy"])))
 
 
+# A plug setting is shown by the name its rows were published under before it moved into
+# model.plug (issue 40): num_skills=2, plug_site=decoder.
+_SHOWN = {f"model.plug.{new}": old for old, new in model_config.LEGACY_PLUG_FIELDS.items()}
+
+
 def _short(name: str) -> str:
-  return name.removeprefix("model.")
+  return _SHOWN.get(name, name.removeprefix("model."))
 
 
 def _value(v) -> str:

@@ -65,7 +65,7 @@ def policy_controller(model: ModelConfig, params, stats: dict, *, query_every: i
   weights = {"params": params,
              "stats": {k: {s: jnp.asarray(stats[k][s], jnp.float32) for s in ("mean", "std")}
                        for k in inputs}}
-  return Controller(init, act, model.num_skills if model.is_skillplug else 0, name, weights,
+  return Controller(init, act, model.plug.num_skills if model.is_skillplug else 0, name, weights,
                     tuple(model.image_size) if model.use_images else None)
 
 
@@ -93,7 +93,7 @@ def _controller_fns(model: ModelConfig, query_every: int, temporal: bool, ensemb
   if temporal and smoothing:
     def init(state):
       b = state.obs["joint_pos"].shape[0]
-      return jnp.zeros((b, chunk, chunk, adim), jnp.float32), jnp.zeros((b, model.num_skills), jnp.float32)
+      return jnp.zeros((b, chunk, chunk, adim), jnp.float32), jnp.zeros((b, model.plug.num_skills), jnp.float32)
 
     def act(weights, carry, state, t):
       buf, last_r = carry
@@ -119,7 +119,7 @@ def _controller_fns(model: ModelConfig, query_every: int, temporal: bool, ensemb
 
   def init(state):
     b = state.obs["joint_pos"].shape[0]
-    return jnp.zeros((b, chunk, adim), jnp.float32), jnp.zeros((b, model.num_skills), jnp.float32)
+    return jnp.zeros((b, chunk, adim), jnp.float32), jnp.zeros((b, model.plug.num_skills), jnp.float32)
 
   def act(weights, cs, state, t):
     plan, last_r = cs

@@ -6,7 +6,7 @@
                32-D style latent; at inference the latent is zero.
 
 `ActionProjection`: f_act's last step alone (final norm and the action
-               projection), its own parameter group with `plug_site='decoder'`.
+               projection), its own parameter group with `plug.site='decoder'`.
 
 Token layout of h: [style, joint_pos, then either every camera's feature map
 cells (camera-major, row-major) or the object state: one token, or one per
@@ -200,7 +200,7 @@ class ActionHead(nn.Module):
 
   'qk' positions: ACT's decoder, zero contents with the learned queries as
   query positions; 'input': the learned queries are the contents.
-  project=False (`plug_site='decoder'`): stop before the final norm and
+  project=False (`plug.site='decoder'`): stop before the final norm and
   return (decoder steps [B, chunk, hidden], their positions [1, chunk,
   hidden] or None); `ActionProjection` does the rest.
   """

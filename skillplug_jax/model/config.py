@@ -12,19 +12,14 @@ from typing import Tuple
 import jax.numpy as jnp
 
 from skillplug_jax import validation
-from skillplug_jax.model.interactor import INTERACTORS
+from skillplug_jax.model.plug import PlugConfig
 
 POLICIES = ("act", "skillplug")
 POSITIONS = ("input", "qk")
-# Readings of the paper's text and remedies beyond it (issue 27); the first
-# value of each is the paper's configuration as first built, and the default.
-PLUG_SITES = ("encoder", "decoder")
-SKILL_OFFSETS = ("sample", "mean", "none")
-ROUTER_INPUTS = ("all", "no_style", "zero_style")
+# A reading of the paper's text (issue 27); the first value is the paper's configuration as first
+# built, and the default.
 OBJECT_TOKENS = ("one", "per_object")
-ROUTINGS = ("soft", "top1")
-FUSION_SOURCES = ("router", "posterior")
-DTYPES = ("float32", "bfloat16", "float16")
+DTYPES = ("float32", "bfloat16")
 # envs.robot.CAMERAS, copied: envs is slow to import and a config must be cheap to build
 # (tests/test_config_validation.py keeps the two equal).
 CAMERAS = ("side", "wrist")
@@ -33,6 +28,19 @@ CAMERAS = ("side", "wrist")
 # before issue 12 lack these keys and must load as the model they trained.
 LEGACY_DEFAULTS = dict(positions="input", embed_init_std=1.0, pre_norm=True,
                        cvae_zero_init=True, normalize_object_state=False)
+# Runs written before the plug had its own config (issue 40) hold its settings flat in `model`:
+# old name -> the field of `PlugConfig` it is now.
+LEGACY_PLUG_FIELDS = dict(num_skills="num_skills", skill_latent_dim="skill_latent_dim",
+                          alignment_dim="alignment_dim", interactor="interactor",
+                          router_temperature="router_temperature", plug_site="site",
+                          skill_offset="skill_offset", router_input="router_input",
+                          router_cue_slots="router_cue_slots")
+# Arms removed in the house clean-up (issue 40), measured dead: an old run that recorded one of
+# them at this value trained what today's code builds; any other value cannot be rebuilt here.
+# Their results keep the commit that made them (docs/training.md).
+REMOVED_ARMS = {"model.routing": "soft", "model.fusion_source": "router", "loss.load_balance": 0.0,
+                "loss.router_z": 0.0}
+REMOVED_AT = "5dddeed"  # the last commit with those arms, router_input='zero_style' and dtype='float16'
 
 
 _count, _number, _one_of = validation.count, validation.number, validation.one_of
@@ -47,12 +55,8 @@ _RULES = dict(
     positions=_one_of(POSITIONS), embed_init_std=_number(0), pre_norm=validation.flag(),
     cvae_zero_init=validation.flag(), normalize_object_state=validation.flag(), latent_dim=_count(1),
     cvae_enc_layers=_count(0), backbone_width=_count(1),
-    backbone_stages=validation.each(_count(1), nonempty=True), num_skills=_count(1),
-    skill_latent_dim=_count(1), alignment_dim=_count(1), interactor=_one_of(INTERACTORS),
-    router_temperature=_number(above=0), plug_site=_one_of(PLUG_SITES),
-    skill_offset=_one_of(SKILL_OFFSETS), router_input=_one_of(ROUTER_INPUTS),
-    object_tokens=_one_of(OBJECT_TOKENS), routing=_one_of(ROUTINGS),
-    fusion_source=_one_of(FUSION_SOURCES), router_cue_slots=_count(0), dtype=_one_of(DTYPES))
+    backbone_stages=validation.each(_count(1), nonempty=True), object_tokens=_one_of(OBJECT_TOKENS),
+    dtype=_one_of(DTYPES))
 _RELATIONS = (
     validation.Relation("hidden", lambda c: c.hidden % c.heads == 0,
                         lambda c: f"divisible by heads ({c.heads})"),
@@ -67,7 +71,8 @@ class ModelConfig:
   """Everything `Policy` needs to build itself.
 
   The defaults are the paper's ACT (hidden 512, 8 heads, FF 3200, 4 encoder
-  and 7 decoder layers, 32-D CVAE style latent, chunk 25) with K=4 skills.
+  and 7 decoder layers, 32-D CVAE style latent, chunk 25) with K=4 skills
+  (`plug`: the SkillPlug's own settings, model/plug.py).
   """
   policy: str = "skillplug"  # 'act' | 'skillplug'
   use_images: bool = True  # False: the state-only variant (object_state token)
@@ -107,50 +112,11 @@ class ModelConfig:
   # Basic blocks per ResNet stage; (2, 2, 2, 2) is ResNet-18. Fewer stages keep a finer
   # map (64x64 images: 2x2 cells with 4 stages, 4x4 with 3), fewer blocks cost less.
   backbone_stages: Tuple[int, ...] = (2, 2, 2, 2)
-  num_skills: int = 4  # K
-  # Size of the per-skill posterior latent z_k. Kept small (ACT's style latent
-  # size) so the posterior is a real bottleneck: W lifts it to `hidden`.
-  skill_latent_dim: int = 32
-  # Width of the shared space where g_tau(f_tau) and g_s(s_k) are compared (BSA).
-  alignment_dim: int = 128
-  interactor: str = "query_offset"  # see interactor.INTERACTORS
-  # Softmax temperature of the router (1: the paper's softmax; below 1: sharper routing).
-  router_temperature: float = 1.0
-  # Where the plug sits (policy.py). 'encoder': between encoder and decoder,
-  # h~ = sum_k r_k Interactor(h, s_k) feeds the whole decoder. 'decoder': on
-  # the decoder's per-step outputs, with f_act the final norm and action
-  # projection alone (parameter group 'action_proj', for ACT too), so few-shot
-  # can retrain a light head in both arms. The router stays chunk-level.
-  plug_site: str = "encoder"
-  # What the interactor receives in training: s_k + W z_k with z 'sample'd
-  # (the paper), z at its posterior 'mean', or s_k alone ('none': the posterior
-  # serves only its KL and BSA terms). Inference always gives s_k.
-  skill_offset: str = "sample"
-  # What the router pools: 'all' scene tokens, 'no_style' (without the
-  # training-only CVAE style token, index 0; the other tokens still saw it in
-  # the encoder's attention), or 'zero_style' (the strict form: the tokens of a
-  # second encoder pass with the style latent at zero, as at inference; one
-  # more encoder pass per training step).
-  router_input: str = "all"
   # State-only scenes: the object state as 'one' token (an MLP of all of it)
   # or one token 'per_object' (a shared MLP of each object's 7 numbers plus a
   # learned per-slot position: act.py).
   object_tokens: str = "one"
-  # Ours: 'top1' routes to the argmax skill alone, in training (straight-
-  # through: one-hot forward, softmax gradient) and at inference.
-  routing: str = "soft"
-  # Ours: 'posterior' fuses, in training, with a hard Gumbel-softmax sample of
-  # the posterior's skill assignment softmax(traj_logits) (straight-through);
-  # the router learns only by distillation to it (loss.distill) and routes at
-  # inference.
-  fusion_source: str = "router"
-  # Ours: the last N object-state slots (7 numbers each) are a cue that only
-  # the router reads (added to its pooled input through a Dense layer); the
-  # encoder sees them zeroed. The decoder can then learn what the cue says only
-  # through the routing: a bottleneck that makes the routing carry behaviour
-  # (docs/measurements/skill_library.md). 0: the paper's (both read everything).
-  # ACT, which has no router, reads everything either way.
-  router_cue_slots: int = 0
+  plug: PlugConfig = PlugConfig()
   dtype: str = "float32"  # compute dtype ('bfloat16' on GPUs); params stay float32
 
   def __post_init__(self):
@@ -163,3 +129,50 @@ class ModelConfig:
   @property
   def is_skillplug(self) -> bool:
     return self.policy == "skillplug"
+
+  @property
+  def split_head(self) -> bool:
+    """Whether f_act is the final norm and action projection alone (group 'action_proj'), for
+    both policies: with the plug on the decoder's steps (`plug.site`), so that ACT's light-head
+    arm fine-tunes what the plug's does."""
+    return self.plug.site == "decoder"
+
+
+def _tuples(d: dict) -> dict:
+  return {k: tuple(v) if isinstance(v, list) else v for k, v in d.items()}
+
+
+def from_dict(d: dict) -> ModelConfig:
+  """A ModelConfig as a run's config.json holds it, written by this version or an older one:
+  fields added since take the values that reproduce what was trained (LEGACY_DEFAULTS), the plug's
+  flat fields of before issue 40 move into `plug` (LEGACY_PLUG_FIELDS), and a removed arm is
+  named (`check_removed`)."""
+  d = {**LEGACY_DEFAULTS, **d}
+  plug = dict(d.pop("plug", {}))
+  for old, new in LEGACY_PLUG_FIELDS.items():
+    if old in d:
+      plug[new] = d.pop(old)
+  check_removed({f"model.{k}": d.pop(k) for k in ("routing", "fusion_source") if k in d})
+  if plug.get("router_input") == "zero_style" or d.get("dtype") == "float16":
+    raise ValueError(f"this run was trained with an arm removed in issue 40 (model.router_input="
+                     f"{plug.get('router_input')!r}, model.dtype={d.get('dtype')!r}); load it with the code "
+                     f"at commit {REMOVED_AT}")
+  return ModelConfig(**_tuples(d), plug=PlugConfig(**plug))
+
+
+def check_removed(settings: dict) -> None:
+  """Raise, naming the commit to use, for a removed arm (REMOVED_ARMS) set to anything but the
+  value that today's code reproduces; `settings`: dotted name -> recorded value."""
+  used = {k: v for k, v in settings.items() if k in REMOVED_ARMS and v != REMOVED_ARMS[k]}
+  if used:
+    raise ValueError(f"this run was trained with an arm removed in issue 40 ("
+                     f"{', '.join(f'{k}={v!r}' for k, v in used.items())}); load it with the code at "
+                     f"commit {REMOVED_AT}")
+
+
+def legacy_name(name: str) -> str:
+  """A dotted setting's name as today's configs spell it ('model.num_skills' -> 'model.plug.num_skills')."""
+  head, _, field = name.partition(".")
+  if head == "model" and field in LEGACY_PLUG_FIELDS:
+    return f"model.plug.{LEGACY_PLUG_FIELDS[field]}"
+  return name

@@ -3,7 +3,7 @@
 Every interactor maps scene tokens h [B, N, D] and (per-sample) skill vectors
 s [B, K, D] to u [B, K, N, D], given the tokens' positions (None when they
 are already in the contents: `ModelConfig.positions`). `Policy` picks one by
-name from `INTERACTORS` (`ModelConfig.interactor`), so a new reading of the
+name from `INTERACTORS` (`PlugConfig.interactor`), so a new reading of the
 paper's "cross-attention" is a new class here and one dictionary entry.
 """
 

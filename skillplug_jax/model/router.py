@@ -15,9 +15,9 @@ class Router(nn.Module):
   retrains, together with the action head. `temperature` divides the
   logits: below 1 the same logits give sharper weights (a remedy tried
   against routing that stays uniform; 1 is the paper's plain softmax).
-  with_logits: return (probs, the logits the softmax reads), for the losses
-  that read logits (ST-MoE's router z-loss). cue [B, C]: what only the router
-  reads (`ModelConfig.router_cue_slots`), added to the pooled tokens.
+  with_logits: return (probs, the logits the softmax reads), which the
+  training diagnostics log. cue [B, C]: what only the router reads
+  (`PlugConfig.router_cue_slots`), added to the pooled tokens.
   """
   num_skills: int
   hidden: int
@@ -37,17 +37,3 @@ class Router(nn.Module):
     logits = logits.astype(jnp.float32)
     probs = jax.nn.softmax(logits, axis=-1)
     return (probs, logits) if with_logits else probs
-
-
-def top1(probs: jnp.ndarray) -> jnp.ndarray:
-  """Hard top-1 routing, straight-through: the one-hot of the argmax forward,
-  the softmax's gradient backward."""
-  hard = jax.nn.one_hot(jnp.argmax(probs, axis=-1), probs.shape[-1], dtype=probs.dtype)
-  return probs + jax.lax.stop_gradient(hard - probs)
-
-
-def gumbel_top1(rng, logits: jnp.ndarray) -> jnp.ndarray:
-  """A hard sample of softmax(logits) (Gumbel-max), straight-through the
-  Gumbel-softmax at temperature 1 (Jang et al., 2017)."""
-  soft = jax.nn.softmax(logits + jax.random.gumbel(rng, logits.shape, logits.dtype), axis=-1)
-  return top1(soft)

@@ -145,9 +145,13 @@ def to_dict(cfg) -> dict:
 
 
 def from_dict(d: dict) -> TrainConfig:
+  """A TrainConfig as a run's config.json holds it, from this version or an older one
+  (`model.config.from_dict`; the loss terms removed in issue 40 must hold their neutral values)."""
   d = dict(d)
-  model = {**model_config.LEGACY_DEFAULTS, **d.pop("model")}
-  model = ModelConfig(**{k: tuple(v) if isinstance(v, list) else v for k, v in model.items()})
-  loss = LossWeights(**d.pop("loss"))
+  model = model_config.from_dict(d.pop("model"))
+  loss = dict(d.pop("loss"))
+  loss.pop("distill", None)  # it weighed only with model.fusion_source='posterior', which check_removed names
+  model_config.check_removed({f"loss.{k}": loss.pop(k) for k in ("load_balance", "router_z")
+                              if k in loss})
   d = {k: tuple(v) if isinstance(v, list) else v for k, v in d.items()}
-  return TrainConfig(model=model, loss=loss, **d)
+  return TrainConfig(model=model, loss=LossWeights(**loss), **d)
