@@ -11,6 +11,7 @@ from typing import Tuple
 
 import jax.numpy as jnp
 
+from envs.names import CAMERAS  # cheap: not the suite (envs/__init__.py)
 from skillplug_jax import validation
 from skillplug_jax.model.interactor import INTERACTORS
 
@@ -25,9 +26,6 @@ OBJECT_TOKENS = ("one", "per_object")
 ROUTINGS = ("soft", "top1")
 FUSION_SOURCES = ("router", "posterior")
 DTYPES = ("float32", "bfloat16", "float16")
-# envs.robot.CAMERAS, copied: envs is slow to import and a config must be cheap to build
-# (tests/test_config_validation.py keeps the two equal).
-CAMERAS = ("side", "wrist")
 
 # What a run recorded before a field existed meant: config.json files written
 # before issue 12 lack these keys and must load as the model they trained.
