@@ -116,6 +116,32 @@ def test_fewshot_with_other_trainable_groups_trains_those_in_their_own_folder(tm
     fewshot.adapt_and_evaluate([source.run_dir], "block_place", progress=False, trainable=["head"])
 
 
+def test_a_jobs_fewshot_follows_the_runs_record_not_the_experiment(tmp_path, monkeypatch):
+  """pipeline.job fine-tunes by the protocol the run recorded (as `skillplug fewshot` does): a resumed
+  run keeps the record it started with, whatever this experiment's fewshot says now."""
+  exp = experiment.get("quick", ["seeds=0", "policies=skillplug"])
+  recorded = dataclasses.replace(experiment.record(exp, "skillplug"), fewshot=experiment.FewShot(
+      taskset="block_place", steps=3, trainable=experiment.Trainable(skillplug=("interactor", "router"))))
+  trained = []
+
+  def train(cfg, progress=True, record=None):
+    trained.append((cfg, record))
+    if not cfg.init_from:  # the pretraining run, started earlier with `recorded`
+      run_files.write_run_files(cfg.run_dir, cfg, {}, recorded)
+    return cfg.run_dir
+
+  monkeypatch.setattr(loop, "train", train)
+  monkeypatch.setattr(pipeline, "evaluated", lambda *a, **k: [])
+  pipeline.job(exp, "skillplug", 0, tmp_path, record=experiment.record(exp, "skillplug"))
+  [(few, few_record)] = trained[1:]
+  assert (few.taskset, few.max_steps, few.trainable) == ("block_place", 3, ("interactor", "router"))
+  assert few_record == recorded
+  # a variant's groups are in the record its runs start with
+  arms = {v.name: a for v, a in experiment.expand(experiment.get("skill_library"))}
+  assert experiment.record(arms["decoder"], "act").fewshot.trainable.of("act") == ("action_proj",)
+  assert experiment.record(arms["decoder"], "skillplug").fewshot.trainable.of("skillplug") == ("action_proj", "router")
+
+
 def test_cosine_schedule_warms_up_then_decays_to_zero():
   cfg = train_config.override(experiment.preset("quick"), ["lr=1e-3", "warmup_steps=10", "lr_schedule=cosine"])
   lr = loop.learning_rate(cfg, 110)
