@@ -34,7 +34,7 @@ from mujoco import mjx
 from mujoco.mjx.third_party import mujoco_warp as mjw
 
 from envs import robot, scene
-from envs.names import BACKENDS, check_backend, resolve_backend  # noqa: F401 (envs.env.BACKENDS)
+from envs.names import BACKENDS, check_backend  # noqa: F401 (envs.env.BACKENDS)
 
 SUCCESS_HOLD_STEPS = 10  # 0.5 s at 20 Hz
 # The gripper: every body whose contact with an object means "still held".

@@ -231,7 +231,8 @@ def run(exp: Experiment, out: Path, configs: Path | None = None) -> dict:
   """Every job of `exp` (loaded from the directory `configs`, default the repository's) and the summary.
   The pipeline's edge: `exp.train.backend` ("auto" too) is resolved here, once, for every arm."""
   t_start = time.time()
-  exp = dataclasses.replace(exp, train=dataclasses.replace(exp.train, backend=envs.resolve_backend(exp.train.backend)))
+  backend = envs.resolve_backend(exp.train.backend)
+  exp = dataclasses.replace(exp, train=dataclasses.replace(exp.train, backend=backend))
   print(f"[pipeline] {exp.train.preset}: expert demonstrations ...", file=sys.stderr, flush=True)
   stages = {"demonstrations": make_datasets(exp, out)}
   # the slower policy first, so that the last job to start is a short one

@@ -17,9 +17,9 @@ from pathlib import Path
 from typing import Sequence
 
 import envs
+from skillplug_jax import experiment
 from skillplug_jax.evaluate import groups, protocol, tables
 from skillplug_jax.evaluate.policy_controller import load_controller
-from skillplug_jax import experiment
 from skillplug_jax.experiment import FewShot, Trainable
 from skillplug_jax.train import loop, run_files
 from skillplug_jax.train.config import TrainConfig

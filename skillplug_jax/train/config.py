@@ -49,7 +49,7 @@ class TrainConfig:
   demos: int = 300  # per task; images follow model.use_images and model.image_size
   data_seed: int = 0
   data_dir: str = "results/datasets"
-  backend: str = "auto"  # physics of the demonstrations (envs.BACKENDS); `loop.train` resolves "auto" and the run records the resolved one
+  backend: str = "auto"  # physics of the demonstrations (envs.BACKENDS); resolved by `loop.train`, the run records it
   # Ours (issue 27): every step's `skill_label` mined from the demonstrations by this labeller
   # (data/segments.py), which loss.router_label trains the router to predict. '': none (the toy:
   # its ground-truth primitive, the oracle).
@@ -132,7 +132,8 @@ def _set(obj, path, value, full_key):
     return dataclasses.replace(obj, **{name: _set(getattr(obj, name), path[1:], value, full_key)})
   if dataclasses.is_dataclass(getattr(obj, name)):  # a group of settings: one of them is set
     inner = ", ".join(f.name for f in dataclasses.fields(getattr(obj, name)))
-    raise ValueError(f"{full_key} holds settings ({inner}): set one of them, e.g. {full_key}.{dataclasses.fields(getattr(obj, name))[0].name}=...")
+    first = dataclasses.fields(getattr(obj, name))[0].name
+    raise ValueError(f"{full_key} holds settings ({inner}): set one of them, e.g. {full_key}.{first}=...")
   try:
     parsed = _parse(value, hints[name])
   except ValueError as e:

@@ -42,7 +42,7 @@ class Trainable:
 _FEWSHOT_RULES = dict(taskset=validation.text(), demos=validation.count(1),
                       steps=validation.count(0, " (0: the source run's own `epochs`)"),
                       trainable=validation.Rule(lambda v: isinstance(v, Trainable),
-                                                "a Trainable (its groups per policy: Trainable(act=..., skillplug=...))"),
+                                                "a Trainable (groups per policy: Trainable(act=..., skillplug=...))"),
                       marginal_terms=validation.flag())
 
 
