@@ -129,11 +129,12 @@ def main(argv=None):
   p.add_argument("--out", default="results/bench_eval.json")
   args = p.parse_args(argv)
   envs.quiet_warp()
+  backend = envs.resolve_backend(args.backend)  # the command's edge: "auto" resolved once
   rows = []
   for preset in args.presets.split(","):
     for b in [int(v) for v in args.batches.split(",") if v]:
       for policy in args.policies.split(","):
-        rows.append(bench(args.task, preset, policy, b, args.steps, args.repeats, args.backend))
+        rows.append(bench(args.task, preset, policy, b, args.steps, args.repeats, backend))
         print(json.dumps(rows[-1]), flush=True)
   out = dict(device=str(jax.devices()[0]), platform=jax.devices()[0].platform,
              cpu_count=os.cpu_count(), results=rows)

@@ -9,116 +9,54 @@
 light (`envs.appearance`) over unchanged physics.
 
 `backend`: "mujoco" (MuJoCo's C engine, the CPU backend), "mjx-warp" (MJX on
-MuJoCo Warp, for accelerators) or "auto" (MJX-Warp when JAX sees a GPU).
+MuJoCo Warp, for accelerators) or "auto" (MJX-Warp when JAX sees a GPU),
+resolved once where a command or API call starts (`envs.names`).
+
+Importing the package is cheap: it picks MuJoCo's GL platform and holds the
+suite's names (`envs.names`); the tasks, `make` and the rest (`envs.suite`) and
+the submodules load when first used, so a config that checks a camera or a
+backend name does not load MuJoCo.
 """
 
 from __future__ import annotations
 
+import importlib
+
 from envs import headless
 
-headless.choose_gl()  # first: MuJoCo reads MUJOCO_GL once, when it is imported
+headless.choose_gl()  # first: MuJoCo reads MUJOCO_GL once, when it is imported (by any envs.* module)
 
-import jax.numpy as jnp  # noqa: E402
+from envs.names import (BACKENDS, CAMERAS, ENGINES, OBJECT_STATE_DIM, UnresolvedBackend,  # noqa: E402
+                        check_backend, resolve_backend)
 
-from envs import appearance as appearance_module  # noqa: E402
-from envs import batched, mujoco_batch  # noqa: E402
-from envs.batched import BatchedEnv  # noqa: E402
-from envs.env import BACKENDS, EnvConfig, TabletopEnv, resolve_backend  # noqa: E402
-from envs.mujoco_batch import MujocoBatchEnv  # noqa: E402
-from envs.tasks.block_bridge_place import BlockBridgePlace  # noqa: E402
-from envs.tasks.block_place import BlockPlace  # noqa: E402
-from envs.tasks.coffeecup_place import CoffeecupPlace  # noqa: E402
-from envs.tasks.cuplid_cover import CuplidCover  # noqa: E402
-from envs.tasks.drawer_open import DrawerOpen  # noqa: E402
-from envs.tasks.jujube_pick import JujubePick  # noqa: E402
-from envs.tasks.jujube_place import JujubePlace  # noqa: E402
-from envs.tasks.kiwi_place import KiwiPlace  # noqa: E402
-from envs.tasks.laptop_close import LaptopClose  # noqa: E402
-from envs.tasks.mouse_push import MousePush  # noqa: E402
-from envs.tasks.stack_block import StackBlock  # noqa: E402
+# What `envs.suite` defines, read from there when first asked for.
+_SUITE = frozenset({
+    "TASKS", "TASKSETS", "padded_object_state", "task_class", "quiet_warp", "taskset", "renderer_of",
+    "make", "batch_of", "BatchedEnv", "MujocoBatchEnv", "EnvConfig", "TabletopEnv",
+    "BlockBridgePlace", "BlockPlace", "CoffeecupPlace", "CuplidCover", "DrawerOpen", "JujubePick",
+    "JujubePlace", "KiwiPlace", "LaptopClose", "MousePush", "StackBlock"})
 
-TASKS: dict[str, type[TabletopEnv]] = {
-    cls.name: cls for cls in (
-        JujubePick, KiwiPlace, StackBlock, CoffeecupPlace, BlockBridgePlace, DrawerOpen,
-        LaptopClose, CuplidCover, BlockPlace, JujubePlace, MousePush)
-}
-
-TASKSETS: dict[str, tuple[str, ...]] = {
-    # The paper's table order.
-    "discoverse7": ("jujube_pick", "kiwi_place", "stack_block", "coffeecup_place",
-                    "block_bridge_place", "drawer_open", "laptop_close"),
-    "discoverse_fewshot4": ("cuplid_cover", "block_place", "jujube_place", "mouse_push"),
-    # The CPU quickstart's pretraining set: the discoverse7 tasks whose expert
-    # episodes and time limits are shortest, so closed-loop evaluation is quick.
-    "quickstart3": ("jujube_pick", "drawer_open", "laptop_close"),
-}
+__all__ = sorted(_SUITE | {"BACKENDS", "CAMERAS", "ENGINES", "OBJECT_STATE_DIM", "UnresolvedBackend",
+                           "check_backend", "resolve_backend"})
 
 
-# Privileged object state is padded to this width so that one state-based
-# policy can read every task: block bridge, the widest, has four free objects
-# of 7 numbers each. Datasets and policies are built with this width, so a task
-# that needs more is an error (tests/test_tasks.py checks every task fits).
-OBJECT_STATE_DIM: int = 28
+def __getattr__(name: str):
+  """The suite's names (`envs.make`, `envs.TASKS`, ...) and submodules (`envs.env`,
+  `envs.appearance`, ...), imported when first asked for (PEP 562)."""
+  if name in _SUITE:
+    value = getattr(importlib.import_module("envs.suite"), name)
+  elif name.startswith("_"):
+    raise AttributeError(f"module 'envs' has no attribute {name!r}")
+  else:
+    try:
+      value = importlib.import_module(f"envs.{name}")
+    except ModuleNotFoundError as e:
+      if e.name != f"envs.{name}":
+        raise
+      raise AttributeError(f"module 'envs' has no attribute {name!r}") from None
+  globals()[name] = value
+  return value
 
 
-def padded_object_state(x):
-  """Zero-pad object state (last axis) to OBJECT_STATE_DIM."""
-  pad = OBJECT_STATE_DIM - x.shape[-1]
-  if pad < 0:
-    raise ValueError(f"object state has width {x.shape[-1]} > OBJECT_STATE_DIM={OBJECT_STATE_DIM}")
-  return jnp.pad(x, [(0, 0)] * (x.ndim - 1) + [(0, pad)])
-
-
-def task_class(name: str) -> type[TabletopEnv]:
-  if name not in TASKS:
-    raise ValueError(f"unknown task {name!r}; valid tasks: {', '.join(TASKS)}")
-  return TASKS[name]
-
-
-def quiet_warp() -> None:
-  """Silence Warp's per-module compile and cache messages (warnings still print)."""
-  import warp as wp
-  wp.config.quiet = True
-  wp.config.log_level = wp.LOG_WARNING
-
-
-def taskset(name: str) -> tuple[str, ...]:
-  """Task names of a taskset; a single task name is accepted as a one-task set."""
-  if name in TASKSETS:
-    return TASKSETS[name]
-  if name in TASKS:
-    return (name,)
-  raise ValueError(
-      f"unknown taskset {name!r}; valid tasksets: {', '.join(TASKSETS)} "
-      f"(or one task: {', '.join(TASKS)})")
-
-
-def renderer_of(backend: str) -> str:
-  """The renderer that draws a backend's camera images (they differ pixel by pixel)."""
-  return mujoco_batch.RENDERER if resolve_backend(backend) == "mujoco" else batched.RENDERER
-
-
-def make(name: str, num_envs: int = 1, render: bool = False, image_size=(64, 64),
-         backend: str = "auto", devices: tuple | None = None, appearance: str = "default",
-         **config) -> BatchedEnv | MujocoBatchEnv:
-  """A batch of `num_envs` environments of task `name` (per device, when rendering on `devices`).
-
-  image_size: (H, W) of both cameras' images, as everywhere in the project.
-  appearance: "default", or "shifted": the cameras see other colours and
-  light, drawn per environment from its reset key (`envs.appearance`).
-  """
-  if num_envs < 1:
-    raise ValueError(f"num_envs must be >= 1, got {num_envs}")
-  appearance_module.check(appearance)
-  env = task_class(name)(EnvConfig(backend=resolve_backend(backend), num_envs=num_envs, **config))
-  return batch_of(env, num_envs, render=render, image_size=image_size, devices=devices, appearance=appearance)
-
-
-def batch_of(env: TabletopEnv, num_envs: int, render: bool = False, image_size=(64, 64),
-             devices: tuple | None = None, appearance: str = "default") -> BatchedEnv | MujocoBatchEnv:
-  """A batch of `num_envs` copies of `env` on the backend it was made for."""
-  if env.backend == "mujoco":
-    if devices is not None and len(devices) > 1:
-      raise ValueError("the 'mujoco' backend runs on the CPU's threads: it takes no devices")
-    return MujocoBatchEnv(env, num_envs, render=render, image_size=image_size, appearance=appearance)
-  return BatchedEnv(env, num_envs, render=render, image_size=image_size, devices=devices, appearance=appearance)
+def __dir__():
+  return sorted(set(globals()) | set(__all__))

@@ -34,6 +34,7 @@ from mujoco import mjx
 from mujoco.mjx.third_party import mujoco_warp as mjw
 
 from envs import robot, scene
+from envs.names import BACKENDS, check_backend  # noqa: F401 (envs.env.BACKENDS)
 
 SUCCESS_HOLD_STEPS = 10  # 0.5 s at 20 Hz
 # The gripper: every body whose contact with an object means "still held".
@@ -45,23 +46,10 @@ SOLVER_LIMIT_BITS = {"solver_iterations": int(mjw.OverflowType.ITERATIONS),
                      "linesearch_iterations": int(mjw.OverflowType.LS_ITERATIONS)}
 
 
-BACKENDS = ("auto", "mujoco", "mjx-warp")
-
-
-def resolve_backend(name: str) -> str:
-  """'auto' is MJX-Warp when JAX sees a GPU and MuJoCo's C engine otherwise,
-  which on a CPU steps our tasks about 60x faster than Warp (docs/measurements/physics_backends.md)."""
-  if name not in BACKENDS:
-    raise ValueError(f"unknown backend {name!r}; valid backends: {', '.join(BACKENDS)}")
-  if name == "auto":
-    return "mjx-warp" if jax.default_backend() == "gpu" else "mujoco"
-  return name
-
-
 @dataclasses.dataclass(frozen=True)
 class EnvConfig:
   """Physics and observation settings shared by all tasks."""
-  backend: str = "auto"  # one of BACKENDS; a made environment holds the resolved name
+  backend: str  # "mujoco" or "mjx-warp" (envs.names.ENGINES); `envs.make` resolves "auto"
   control_dt: float = scene.CONTROL_DT
   physics_timestep: float = scene.PHYSICS_TIMESTEP
   num_envs: int = 1  # contact buffers are sized for this many worlds
@@ -92,8 +80,8 @@ class TabletopEnv(Env):
   objects: Sequence[str] = ()  # free bodies, in privileged-state order
   extra_joints: Sequence[str] = ()  # articulated objects' joints (drawer, lid)
 
-  def __init__(self, config: EnvConfig = EnvConfig()):
-    config = dataclasses.replace(config, backend=resolve_backend(config.backend))
+  def __init__(self, config: EnvConfig):
+    check_backend(config.backend, f"{type(self).__name__}(EnvConfig(backend=...))")
     self.config = config
     xml = scene.model_xml(self.name, self.objects_xml(), sensors=self._gripper_contact_sensors())
     m = scene.compile_model(xml)

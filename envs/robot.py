@@ -18,6 +18,8 @@ from __future__ import annotations
 import jax.numpy as jnp
 import numpy as np
 
+from envs.names import CAMERAS  # noqa: F401 (envs.robot.CAMERAS: the cameras `arm_mjcf` defines)
+
 # Kinematic constants (metres). The MJCF below is written from these, so the
 # inverse kinematics and the model cannot drift apart.
 SHOULDER_HEIGHT = 0.12
@@ -55,9 +57,6 @@ def _look_at(eye, target):
   return " ".join(f"{v:.4f}" for v in (*right, *up))
 
 
-# The cameras `arm_mjcf` defines (a side camera on the world, a wrist camera on the
-# gripper), in the order images are recorded, stacked and fed to policies.
-CAMERAS = ("side", "wrist")
 SIDE_CAMERA_EYE = (0.78, -0.42, 0.42)
 SIDE_CAMERA_TARGET = (0.30, 0.02, 0.03)
 

@@ -15,7 +15,9 @@
 
 Each run records its config's few-shot protocol and training settings in its
 config.json (`experiment.RunRecord`), so that its row is named, and it is
-adapted, as it was trained, whatever the config file says later.
+adapted, as it was trained, whatever the config file says later: a job's
+fine-tunes read their protocol from the run's record, as `skillplug fewshot`
+does. The physics backend ("auto" too) is resolved once, when `run` starts.
 
 Everything resumes: a run continues from its last checkpoint, an evaluation
 already written (`<run>/eval/*.json`) is read back, not redone. SIGTERM or
@@ -81,14 +83,14 @@ def evaluated(run: Path, tasks, exp: Experiment, name: str, source: Path, extra:
   if path.exists():
     return json.loads(path.read_text())["results"]
   controller, cfg = load_controller(run)
-  row = groups.row_fields(run_files.read_config(source), run_files.read_record(source))
+  row = groups.row_fields(run_files.read_config(source), experiment.read_record(source))
   results = []
   for task in tasks:
     t0 = time.time()
     routing = (path.with_name(f"{path.stem}_{task}.routing.npz") if cfg.model.is_skillplug else None)
     r = protocol.evaluate_task(task, controller, exp.trials, exp.eval_seed, exp.eval_batch,
                                render=cfg.model.use_images, image_size=cfg.model.image_size,
-                               routing_file=routing)
+                               routing_file=routing, backend=exp.train.backend)
     r.update(run=str(run), **row, trained_on=cfg.backend, wall_s=round(time.time() - t0, 1),
              routing_file=str(routing) if routing else None, **(extra or {}))
     results.append(r)
@@ -102,6 +104,9 @@ def job(exp: Experiment, policy: str, seed: int, out: Path, data_dir: Path | Non
 
   record: what the run records of its config (default `experiment.record(exp, policy)`, its
   preset read from the repository's configs), so that it is named and adapted later as now.
+  The fine-tunes follow the few-shot protocol the run recorded (a resumed run: the one it
+  started with), as `skillplug fewshot` does, not `exp.fewshot`. `exp.train.backend` is
+  resolved (`run`): training and evaluation run on it.
   """
   envs.quiet_warp()
   label, stages = f"{variant + ' ' if variant else ''}{policy} seed {seed}", {}
@@ -120,11 +125,12 @@ def job(exp: Experiment, policy: str, seed: int, out: Path, data_dir: Path | Non
   adapted = []
   if exp.run_fewshot:
     t0 = time.time()
-    source = run_files.read_config(run)
-    for task in tasks_of(exp.fewshot.taskset):  # this experiment's protocol (its overrides included)
-      few = fewshot.fewshot_config(source, run, task, exp.fewshot)
-      few_run = loop.train(few, progress=False, record=run_files.read_record(run))
-      steps = few.num_steps(exp.fewshot.demos)  # the dataset holds `demos` episodes of the task
+    source, recorded = run_files.read_config(run), experiment.read_record(run)
+    plan = recorded.fewshot  # the protocol the run recorded: this experiment's, its overrides included
+    for task in tasks_of(plan.taskset):
+      few = fewshot.fewshot_config(source, run, task, plan)
+      few_run = loop.train(few, progress=False, record=recorded)
+      steps = few.num_steps(plan.demos)  # the dataset holds `demos` episodes of the task
       results = evaluated(few_run, [task], exp, task, run, extra=dict(source=str(run)))
       adapted += [dict(r, trainable=list(few.trainable), steps=steps) for r in results]
     stage("few-shot adapt + evaluate", t0)
@@ -222,15 +228,18 @@ def make_datasets(exp: Experiment, out: Path) -> float:
 
 
 def run(exp: Experiment, out: Path, configs: Path | None = None) -> dict:
-  """Every job of `exp` (loaded from the directory `configs`, default the repository's) and the summary."""
+  """Every job of `exp` (loaded from the directory `configs`, default the repository's) and the summary.
+  The pipeline's edge: `exp.train.backend` ("auto" too) is resolved here, once, for every arm."""
   t_start = time.time()
+  backend = envs.resolve_backend(exp.train.backend)
+  exp = dataclasses.replace(exp, train=dataclasses.replace(exp.train, backend=backend))
   print(f"[pipeline] {exp.train.preset}: expert demonstrations ...", file=sys.stderr, flush=True)
   stages = {"demonstrations": make_datasets(exp, out)}
   # the slower policy first, so that the last job to start is a short one
   jobs = [(v.name, arm, arm_out, p, s) for v, arm, arm_out in arms(exp, out) for s in arm.seeds
           for p in sorted(arm.policies, key=lambda p: p != "skillplug")]
   print(f"[pipeline] {len(jobs)} jobs (variant, policy, seed) on {exp.workers} workers, physics on "
-        f"{envs.resolve_backend(exp.train.backend)} (a line per finished stage) ...", file=sys.stderr, flush=True)
+        f"{exp.train.backend} (a line per finished stage) ...", file=sys.stderr, flush=True)
   t0 = time.time()
   args = [(arm, p, s, arm_out, out / "datasets", name, experiment.record(arm, p, configs))
           for name, arm, arm_out, p, s in jobs]
@@ -247,7 +256,7 @@ def run(exp: Experiment, out: Path, configs: Path | None = None) -> dict:
   summary = dict(config=exp.train.preset, command=exp.command, experiment=dataclasses.asdict(exp),
                  pretrain=publish.merged_summary(parts, "pretrain", tasks_of(exp.train.taskset), ref["pretrain"]),
                  stages_s=stages, wall_s=round(time.time() - t_start, 1), device=str(jax.devices()[0]),
-                 backend=envs.resolve_backend(exp.train.backend), runs=[part["run"] for part in parts])
+                 backend=exp.train.backend, runs=[part["run"] for part in parts])
   if any(part["fewshot"] for part in parts):
     summary["fewshot"] = publish.merged_summary(parts, "fewshot", tasks_of(exp.fewshot.taskset), ref["fewshot"])
   if exp.variants:

@@ -16,7 +16,7 @@ def cmd_experts(args) -> int:
   from envs import rollout
 
   names = [n for part in args.taskset.split(",") for n in envs.taskset(part)]
-  backend = envs.resolve_backend(args.backend)
+  backend = args.backend  # resolved by `main`
   rows = []
   bar = tqdm(names, desc="experts", unit="task", file=sys.stderr)
   for name in bar:
@@ -80,22 +80,29 @@ def cmd_demos(args) -> int:
   return 0
 
 
+def start_distributed(args) -> None:
+  """`pretrain --distributed`: jax.distributed.initialize(), before anything runs on a device (the
+  backend's resolution included, `main`)."""
+  import jax
+
+  explicit = {"--coordinator": args.coordinator or None, "--num-processes": args.num_processes,
+              "--process-id": args.process_id}
+  if not args.distributed and any(v is not None for v in explicit.values()):
+    raise ValueError(f"{', '.join(k for k, v in explicit.items() if v is not None)} need --distributed")
+  if args.distributed:
+    # Several processes (hosts) train one run: coordinator, process count and this process's
+    # id as given, the rest from the cluster's environment (SLURM, Open MPI, TPU). On CPU the
+    # cross-process all-reduce is jax's default CPU collectives implementation (gloo over TCP).
+    jax.distributed.initialize(coordinator_address=explicit["--coordinator"],
+                               num_processes=args.num_processes, process_id=args.process_id)
+
+
 def cmd_pretrain(args) -> int:
   import jax
 
   from skillplug_jax import experiment
   from skillplug_jax.train import config, loop
 
-  explicit = {"--coordinator": args.coordinator or None, "--num-processes": args.num_processes,
-              "--process-id": args.process_id}
-  if not args.distributed and any(v is not None for v in explicit.values()):
-    raise ValueError(f"{', '.join(k for k, v in explicit.items() if v is not None)} need --distributed")
-  if args.distributed:  # before anything runs on a device
-    # Several processes (hosts) train one run: coordinator, process count and this process's
-    # id as given, the rest from the cluster's environment (SLURM, Open MPI, TPU). On CPU the
-    # cross-process all-reduce is jax's default CPU collectives implementation (gloo over TCP).
-    jax.distributed.initialize(coordinator_address=explicit["--coordinator"],
-                               num_processes=args.num_processes, process_id=args.process_id)
   exp = experiment.get(args.config)
   cfg = config.override(exp.train_config(args.policy, seed=0),
                         [f"taskset={args.taskset}", f"seed={args.seed}", f"backend={args.backend}"]
@@ -170,7 +177,8 @@ def _dir_mb(path) -> float:
 
 
 def _backend_flag(parser, what: str = "physics backend") -> None:
-  parser.add_argument("--backend", default="auto", choices=("auto", "mujoco", "mjx-warp"),
+  from envs.names import BACKENDS
+  parser.add_argument("--backend", default="auto", choices=BACKENDS,
                       help=f"{what}: mujoco (MuJoCo's C engine, fastest on a CPU), mjx-warp (MJX on "
                            "MuJoCo Warp, for GPUs), auto (mjx-warp when JAX sees a GPU, else mujoco)")
 
@@ -283,6 +291,10 @@ def main(argv=None) -> int:
   envs.quiet_warp()
   from skillplug_jax.train.preemption import Stopped
   try:
+    if args.command == "pretrain":
+      start_distributed(args)  # before the backend is resolved: that asks JAX for its devices
+    if hasattr(args, "backend"):  # "auto" is resolved here, once; the commands pass it down
+      args.backend = envs.resolve_backend(args.backend)
     return args.fn(args)
   except Stopped as e:  # SIGTERM/SIGINT during training (`Preempted`): its step is checkpointed
     print(f"skillplug: {e}", file=sys.stderr)

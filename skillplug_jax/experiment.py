@@ -12,10 +12,11 @@ settings:
     exp = experiment.get("cpu", ["seeds=0", "train.max_steps=200", "fewshot.steps=50"])
     cfg = exp.train_config("skillplug", seed=0)
 
-A run records, in its config.json (`train.run_files`), a `RunRecord`: the config's
-name, its few-shot protocol and its training settings for the run's policy. Its
-table row is named, and it is adapted, from that record, so an old run keeps its
-meaning when the config file is edited.
+A run records, in its config.json (`train.run_files`), a `RunRecord`
+(`train.run_record`): the config's name, its few-shot protocol and its training
+settings for the run's policy. Its table row is named, and it is adapted, from
+that record (`read_record`), so an old run keeps its meaning when the config
+file is edited.
 """
 
 from __future__ import annotations
@@ -28,15 +29,14 @@ from typing import Iterable
 
 from skillplug_jax import validation
 from skillplug_jax.model.config import POLICIES
-from skillplug_jax.model.freeze import GROUPS
 from skillplug_jax.train import config as train_config
 from skillplug_jax.train.config import TrainConfig
+# The few-shot protocol and the run record live beside the training loop that writes them;
+# config files import them from here (`from skillplug_jax.experiment import Experiment, FewShot`).
+from skillplug_jax.train.run_record import (FewShot, RunRecord, Trainable, record_from_dict,  # noqa: F401
+                                            record_to_dict)
 
 
-_GROUPS = validation.each(validation.one_of(GROUPS), distinct=True)
-_FEWSHOT_RULES = dict(taskset=validation.text(), demos=validation.count(1),
-                      steps=validation.count(0, " (0: the source run's own `epochs`)"),
-                      trainable_act=_GROUPS, trainable_skillplug=_GROUPS, marginal_terms=validation.flag())
 # Each (policy, seed) is one run directory: a policy or seed given twice would train it twice at once.
 _EXPERIMENT_RULES = dict(
     policies=validation.each(validation.one_of(POLICIES), nonempty=True, distinct=True),
@@ -56,31 +56,6 @@ _EXPERIMENT_RELATIONS = (
                         lambda e: "distinct folder names (non-empty, no '/', not starting with '.')",
                         lambda e: [v.name for v in e.variants]),
 )
-
-
-@dataclasses.dataclass(frozen=True)
-class FewShot:
-  """The few-shot protocol: fine-tune each multi-task run on each unseen task, then evaluate it.
-
-  The paper's groups: ACT+SkillPlug retrains the router and the action
-  head (encoder, skill library, interactor and posterior frozen); ACT
-  retrains the action head only.
-  """
-  taskset: str = "discoverse_fewshot4"
-  demos: int = 10  # demonstrations per unseen task
-  steps: int = 500  # fine-tuning steps per task; 0: the source run's own `epochs`
-  trainable_act: tuple[str, ...] = ("action_head",)
-  trainable_skillplug: tuple[str, ...] = ("action_head", "router")
-  # Ours (issue 27): whether the fine-tune keeps the source's terms on the batch's mean routing
-  # (loss.usage). It asks a batch to spread over the skills, which suits
-  # pretraining's batch of many tasks; a few-shot batch holds one task. False: it weighs 0.
-  marginal_terms: bool = True
-
-  def __post_init__(self):
-    validation.check(self, "fewshot.", _FEWSHOT_RULES)
-
-  def trainable(self, policy: str) -> tuple[str, ...]:
-    return tuple(sorted(self.trainable_skillplug if policy == "skillplug" else self.trainable_act))
 
 
 @dataclasses.dataclass(frozen=True)
@@ -118,14 +93,6 @@ class Experiment:
 
   def train_config(self, policy: str, seed: int) -> TrainConfig:
     return dataclasses.replace(self.train, model=dataclasses.replace(self.train.model, policy=policy), seed=seed)
-
-
-@dataclasses.dataclass(frozen=True)
-class RunRecord:
-  """What a run keeps of its experiment config: enough to name its table row and to adapt it."""
-  config: str  # the config file's name (its train.preset)
-  fewshot: FewShot  # the few-shot protocol the run is adapted with by default
-  defaults: TrainConfig  # the config's training settings for the run's policy: its row names what differs
 
 
 def expand(exp: Experiment) -> list[tuple[Variant, Experiment]]:
@@ -233,10 +200,12 @@ def todays_record(preset_name: str, policy: str, run: str | Path) -> RunRecord:
   return RunRecord(preset_name, exp.fewshot, exp.train_config(policy, seed=0))
 
 
-def record_to_dict(rec: RunRecord) -> dict:
-  return dataclasses.asdict(rec)
-
-
-def record_from_dict(d: dict) -> RunRecord:
-  fewshot = FewShot(**{k: tuple(v) if isinstance(v, list) else v for k, v in d["fewshot"].items()})
-  return RunRecord(d["config"], fewshot, train_config.from_dict(d["defaults"]))
+def read_record(run_dir: str | Path) -> RunRecord:
+  """The run's record (`run_files.stored_record`); for a run without one, today's config file's,
+  with a warning (`todays_record`)."""
+  from skillplug_jax.train import run_files  # here: it loads orbax, which a config file need not
+  record = run_files.stored_record(run_dir)
+  if record is not None:
+    return record
+  cfg = run_files.read_config(run_dir)
+  return todays_record(cfg.preset, cfg.model.policy, run_dir)

@@ -1,11 +1,11 @@
 """Few-shot adaptation: one fine-tune per unseen task from a multi-task run, then its evaluation.
 
 The protocol (which groups train, for how many steps) is the one the source
-run recorded of its experiment config (`experiment.RunRecord.fewshot`), not
+run recorded of its experiment config (`RunRecord.fewshot`, `experiment.read_record`), not
 today's config file's. By the paper, ACT+SkillPlug retrains the router and
 the action head (encoder, skill library, interactor and posterior frozen),
-ACT the action head only. Both are the ordinary training loop with an optax
-mask (`TrainConfig.trainable`) and the multi-task parameters as the starting
+ACT the action head only (`FewShot.trainable`). Both are the ordinary training
+loop with an optax mask (`TrainConfig.trainable`) and the multi-task parameters as the starting
 point (`TrainConfig.init_from`); a fine-tune keeps its source's record.
 """
 
@@ -17,16 +17,17 @@ from pathlib import Path
 from typing import Sequence
 
 import envs
+from skillplug_jax import experiment
 from skillplug_jax.evaluate import groups, protocol, tables
 from skillplug_jax.evaluate.policy_controller import load_controller
-from skillplug_jax.experiment import FewShot
+from skillplug_jax.experiment import FewShot, Trainable
 from skillplug_jax.train import loop, run_files
 from skillplug_jax.train.config import TrainConfig
 
 
 def fewshot_config(source: TrainConfig, source_dir: Path, task: str, plan: FewShot, variant: str = "") -> TrainConfig:
   """The fine-tune of `source` on `task` (one of `plan.taskset`) by the few-shot protocol `plan`:
-  the one the source run recorded (`run_files.read_record`), or one the caller chose. `variant`
+  the one the source run recorded (`experiment.read_record`), or one the caller chose. `variant`
   names a departure from the recorded protocol: its fine-tunes go to `RUN_fewshot_<variant>/`."""
   steps = plan.steps
   loss, folder = source.loss, f"{source_dir}_fewshot" + (f"_{variant}" if variant else "")
@@ -35,7 +36,7 @@ def fewshot_config(source: TrainConfig, source_dir: Path, task: str, plan: FewSh
     folder += "_no_marginal_terms"  # beside the default protocol's fine-tunes, not resuming them
   return dataclasses.replace(
       source, taskset=task, data_taskset=plan.taskset, demos=plan.demos, init_from=str(source_dir),
-      trainable=plan.trainable(source.model.policy), max_steps=steps, loss=loss,
+      trainable=plan.trainable.of(source.model.policy), max_steps=steps, loss=loss,
       warmup_steps=min(source.warmup_steps, max(steps // 10, 0)),
       ckpt_every=max(steps, 1) if steps else source.ckpt_every,
       workdir=str(Path(folder) / task))
@@ -53,20 +54,22 @@ def adapt_and_evaluate(source_runs: Sequence[str | Path], taskset: str = "discov
   of one source configuration are one row. `steps`, `marginal_terms` and
   `trainable` (the parameter groups fine-tuned, for either policy): None
   keeps what the source run recorded (`FewShot`). Groups other than the
-  recorded ones fine-tune into `RUN_fewshot_train-<groups>/`.
+  recorded ones fine-tune into `RUN_fewshot_train-<groups>/`. The API's edge:
+  a `backend` of "auto" (evaluation's physics) is resolved here, once.
   """
+  backend = envs.resolve_backend(backend)
   tasks = envs.taskset(taskset)
   results = []
   for src in source_runs:
     src = Path(src)
-    source, record = run_files.read_config(src), run_files.read_record(src)
+    source, record = run_files.read_config(src), experiment.read_record(src)
     label = groups.policy_label(source)
     chosen = dataclasses.replace(
         record.fewshot, taskset=taskset, demos=demos, steps=record.fewshot.steps if steps is None else steps,
         marginal_terms=record.fewshot.marginal_terms if marginal_terms is None else marginal_terms)
     variant = ""
-    if trainable is not None and tuple(sorted(trainable)) != chosen.trainable(source.model.policy):
-      chosen = dataclasses.replace(chosen, trainable_act=tuple(trainable), trainable_skillplug=tuple(trainable))
+    if trainable is not None and tuple(sorted(trainable)) != chosen.trainable.of(source.model.policy):
+      chosen = dataclasses.replace(chosen, trainable=Trainable(act=tuple(trainable), skillplug=tuple(trainable)))
       variant = "train-" + "+".join(sorted(trainable))
     for task in tasks:
       cfg = fewshot_config(source, src, task, chosen, variant)
@@ -82,6 +85,6 @@ def adapt_and_evaluate(source_runs: Sequence[str | Path], taskset: str = "discov
                trainable=list(cfg.trainable), steps=cfg.max_steps, trained_on=source.backend,
                fewshot_loss=dict(usage=cfg.loss.usage))
       results.append(r)
-  return dict(taskset=taskset, demos=demos, trials=trials, seed=seed, backend=envs.resolve_backend(backend),
+  return dict(taskset=taskset, demos=demos, trials=trials, seed=seed, backend=backend,
               results=results,
               **tables.summarise(results, tasks))

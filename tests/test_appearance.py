@@ -219,7 +219,7 @@ def test_the_eval_command_passes_the_appearance_and_the_summary_records_it(tmp_p
   seen = []
   cfg = SimpleNamespace(model=SimpleNamespace(use_images=True, image_size=SIZE), seed=0, backend="mujoco")
   monkeypatch.setattr(protocol, "load_controller", lambda run, query_every: (None, cfg))
-  monkeypatch.setattr(protocol.run_files, "read_record", lambda run: {})
+  monkeypatch.setattr(protocol.experiment, "read_record", lambda run: {})
   monkeypatch.setattr(protocol.groups, "row_fields", lambda cfg, record: {"policy": "ACT"})
   monkeypatch.setattr(protocol, "evaluate_task", lambda *a, **kw: seen.append(kw["appearance"]) or {"trials": 1})
   monkeypatch.setattr(protocol.tables, "summarise", lambda results, tasks: {})

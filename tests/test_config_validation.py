@@ -8,23 +8,21 @@ import re
 
 import pytest
 
-import envs
-from envs import robot
 from skillplug_jax import cli, experiment, losses, validation
-from skillplug_jax.data import segments
-from skillplug_jax.experiment import Experiment, FewShot, Variant
+from skillplug_jax.experiment import Experiment, FewShot, Trainable, Variant
 from skillplug_jax.losses import LossWeights
 from skillplug_jax.model import config as model_config
 from skillplug_jax.model import plug as plug_module
 from skillplug_jax.model.config import ModelConfig
 from skillplug_jax.model.plug import PlugConfig
-from skillplug_jax.train import config
+from skillplug_jax.train import config, run_record
 from skillplug_jax.train.config import TrainConfig
 
 TRAIN = TrainConfig(preset="quick", model=ModelConfig())
 BASE = {"model": ModelConfig(), "plug": PlugConfig(), "loss": LossWeights(), "train": TRAIN, "fewshot": FewShot(),
-        "experiment": Experiment(train=TRAIN)}
-SECTION = {"model": "model.", "plug": "model.plug.", "loss": "loss.", "train": "", "fewshot": "fewshot.", "experiment": ""}
+        "trainable": Trainable(), "experiment": Experiment(train=TRAIN)}
+SECTION = {"model": "model.", "plug": "model.plug.", "loss": "loss.", "train": "", "fewshot": "fewshot.",
+           "trainable": "fewshot.trainable.", "experiment": ""}
 NAN, INF = math.nan, math.inf
 
 # (config, field, a value its rule rejects): every rule, and for ranges each side of it
@@ -57,8 +55,9 @@ REJECTED = [
     ("train", "trainable", ("router", "router")), ("train", "log_every", 0), ("train", "ckpt_every", 0),
     ("train", "keep_checkpoints", 0), ("train", "skill_labels", "phases"),
     ("fewshot", "taskset", ""), ("fewshot", "demos", 0), ("fewshot", "steps", -1),
-    ("fewshot", "trainable_act", ("head",)), ("fewshot", "trainable_skillplug", ("router", "router")),
-    ("fewshot", "marginal_terms", "no"),
+    ("fewshot", "trainable", ("router",)), ("fewshot", "marginal_terms", "no"),
+    ("trainable", "act", ("head",)), ("trainable", "skillplug", ("router", "router")),
+    ("trainable", "act", ["action_head"]),
     ("experiment", "policies", ()), ("experiment", "policies", ("act", "act")),
     ("experiment", "policies", ("diffusion",)), ("experiment", "seeds", ()), ("experiment", "seeds", (0, 0)),
     ("experiment", "seeds", (-1,)), ("experiment", "trials", 0), ("experiment", "eval_seed", -1),
@@ -77,7 +76,7 @@ ACCEPTED = [
     ("train", "grad_clip", -1.0), ("train", "weight_decay", 0.0), ("train", "trainable", ()),
     ("train", "epochs", 0.5), ("train", "lr", 1), ("train", "backend", "mjx-warp"),
     ("train", "skill_labels", ""), ("train", "skill_labels", "tabletop_phases"),
-    ("fewshot", "steps", 0), ("fewshot", "trainable_act", ("action_proj",)),
+    ("fewshot", "steps", 0), ("trainable", "act", ("action_proj",)), ("trainable", "skillplug", ()),
     ("experiment", "seeds", (2, 0)), ("experiment", "policies", ("skillplug",)), ("experiment", "workers", 1),
 ]
 
@@ -107,7 +106,8 @@ def test_edge_values_that_mean_something_are_accepted(case):
 
 def test_every_rejected_field_has_a_rule_and_every_rule_a_case():
   tables = {"model": model_config._RULES, "plug": plug_module._RULES, "loss": losses._WEIGHT_RULES,
-            "train": config._RULES, "fewshot": experiment._FEWSHOT_RULES, "experiment": experiment._EXPERIMENT_RULES}
+            "train": config._RULES, "fewshot": run_record._FEWSHOT_RULES, "trainable": run_record._TRAINABLE_RULES,
+            "experiment": experiment._EXPERIMENT_RULES}
   covered = {(kind, field) for kind, field, _ in REJECTED}
   for kind, rules in tables.items():
     missing = {f for f in rules if (kind, f) not in covered}
@@ -211,12 +211,37 @@ def test_every_shipped_config_builds():
           assert arm.train_config(policy, seed).model.policy == policy
 
 
-def test_copied_names_match_their_source():
-  assert config.BACKENDS == envs.BACKENDS
-  assert config.SKILL_LABELLERS == segments.LABELLERS
-  assert model_config.CAMERAS == robot.CAMERAS
-
-
 def test_the_error_pickles_with_its_fields():  # a pipeline worker's error reaches the parent whole
   err = pickle.loads(pickle.dumps(validation.ConfigError("num_skills", 0, "an integer >= 1", "model.plug.")))
   assert str(err) == "model.plug.num_skills must be an integer >= 1, got 0" and err.field == "num_skills"
+
+
+def test_the_fewshot_groups_are_one_setting_from_config_to_optimizer():
+  exp = experiment.get("quick", ["fewshot.trainable.act=action_proj", "fewshot.trainable.skillplug=router,action_proj"])
+  assert exp.fewshot.trainable == Trainable(act=("action_proj",), skillplug=("router", "action_proj"))
+  assert exp.fewshot.trainable.of("skillplug") == ("action_proj", "router")  # sorted, as TrainConfig.trainable
+  assert experiment.get("quick").fewshot.trainable.of("act") == ("action_head",)
+  with pytest.raises(ValueError, match=re.escape("unknown policy 'diffusion'")):
+    Trainable().of("diffusion")
+  with pytest.raises(validation.ConfigError, match=re.escape("fewshot.trainable.skillplug must be ")):
+    experiment.get("quick", ["fewshot.trainable.skillplug=head"])
+  with pytest.raises(ValueError, match=re.escape("fewshot.trainable holds settings (act, skillplug)")):
+    experiment.get("quick", ["fewshot.trainable=router"])
+  with pytest.raises(ValueError, match=re.escape("unknown setting 'fewshot.trainable_act'")):
+    experiment.get("quick", ["fewshot.trainable_act=router"])  # the old key: named, not ignored
+
+
+def test_a_record_from_before_trainable_loads_its_groups():
+  """config.json records written when the groups were FewShot.trainable_act / trainable_skillplug."""
+  new = run_record.record_to_dict(experiment.record(experiment.get("quick"), "skillplug"))
+  old = dict(new, fewshot={k: v for k, v in new["fewshot"].items() if k != "trainable"})
+  old["fewshot"].update(trainable_act=["action_proj"], trainable_skillplug=["router", "action_proj"])
+  loaded = run_record.record_from_dict(old)
+  assert loaded.fewshot.trainable == Trainable(act=("action_proj",), skillplug=("router", "action_proj"))
+  assert dataclasses.replace(loaded.fewshot, trainable=Trainable()) == FewShot(steps=new["fewshot"]["steps"])
+  del old["fewshot"]["marginal_terms"], old["fewshot"]["trainable_act"]  # older still: the defaults
+  assert run_record.record_from_dict(old).fewshot.trainable == Trainable(skillplug=("router", "action_proj"))
+  # today's records read back as written, through JSON
+  import json
+  assert run_record.record_from_dict(json.loads(json.dumps(new))) == run_record.record_from_dict(new)
+  assert new["fewshot"]["trainable"] == {"act": ("action_head",), "skillplug": ("action_head", "router")}

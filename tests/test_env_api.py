@@ -65,6 +65,23 @@ def test_wrong_action_dimension_is_an_error_naming_the_shape(request, fixture):
     benv.step(s, jnp.zeros((2, 6)))
 
 
+def test_auto_is_resolved_at_the_edges_and_rejected_below_them():
+  """'auto' is resolved where a command or API call starts (envs.make, DemoConfig, ...); a layer
+  below is handed the concrete name and rejects 'auto', naming itself."""
+  from skillplug_jax.data.demos import DemoConfig
+  resolved = envs.resolve_backend("auto")
+  assert resolved in envs.ENGINES and DemoConfig(backend="auto").backend == resolved
+  assert DemoConfig(backend="auto").name.endswith(f"_{resolved}")
+  with pytest.raises(envs.UnresolvedBackend, match=r"DrawerOpen\(EnvConfig\(backend=...\)\) takes a resolved backend"):
+    DrawerOpen(EnvConfig(backend="auto"))
+  with pytest.raises(envs.UnresolvedBackend, match=r"envs.renderer_of takes a resolved backend"):
+    envs.renderer_of("auto")
+  with pytest.raises(ValueError, match="unknown backend 'bullet'"):
+    envs.renderer_of("bullet")
+  assert envs.renderer_of("mujoco") == "mujoco-opengl"
+  assert issubclass(envs.UnresolvedBackend, ValueError)  # the CLI's one-line error
+
+
 def test_backend_names_are_checked_and_auto_follows_the_platform(stack, warp_stack):
   with pytest.raises(ValueError, match="unknown backend 'bullet'; valid backends: auto, mujoco, mjx-warp"):
     envs.make("stack_block", backend="bullet")

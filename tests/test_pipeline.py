@@ -37,10 +37,10 @@ def test_every_config_loads_names_its_command_and_its_preset():
 
 def test_overrides_reach_every_level_and_bad_ones_are_named():
   exp = experiment.get("cpu", ["seeds=0,1", "train.model.hidden=32", "train.lr=3e-4", "fewshot.steps=7",
-                            "fewshot.trainable_skillplug=router", "run_fewshot=false"])
+                            "fewshot.trainable.skillplug=router", "run_fewshot=false"])
   assert exp.seeds == (0, 1) and exp.train.model.hidden == 32 and exp.train.lr == 3e-4
-  assert exp.fewshot.steps == 7 and exp.fewshot.trainable("skillplug") == ("router",)
-  assert exp.fewshot.trainable("act") == ("action_head",) and not exp.run_fewshot
+  assert exp.fewshot.steps == 7 and exp.fewshot.trainable.of("skillplug") == ("router",)
+  assert exp.fewshot.trainable.of("act") == ("action_head",) and not exp.run_fewshot
   cfg = exp.train_config("act", 2)
   assert (cfg.model.policy, cfg.seed, cfg.model.hidden) == ("act", 2, 32)
   with pytest.raises(ValueError, match="unknown config 'cpuu'.*quick"):
@@ -74,10 +74,10 @@ def test_fewshot_protocol_comes_from_the_source_runs_record(tmp_path):
   gone = dataclasses.replace(quick, preset="removed_config", workdir=str(tmp_path / "old"))
   run_files.write_run_files(gone.run_dir, gone, {})
   with pytest.raises(ValueError, match="'removed_config' is not in experiments/configs"):
-    run_files.read_record(gone.run_dir)
+    experiment.read_record(gone.run_dir)
   # a protocol chosen by the caller needs no config
   mine = fewshot.fewshot_config(gone, tmp_path / "src", "block_place",
-                                experiment.FewShot(steps=3, trainable_skillplug=("router",)))
+                                experiment.FewShot(steps=3, trainable=experiment.Trainable(skillplug=("router",))))
   assert (mine.max_steps, mine.trainable) == (3, ("router",))
 
 
@@ -114,6 +114,32 @@ def test_fewshot_with_other_trainable_groups_trains_those_in_their_own_folder(tm
   assert Path(trained[0].workdir).parent.name == "src_fewshot"
   with pytest.raises(ValueError, match="trainable"):
     fewshot.adapt_and_evaluate([source.run_dir], "block_place", progress=False, trainable=["head"])
+
+
+def test_a_jobs_fewshot_follows_the_runs_record_not_the_experiment(tmp_path, monkeypatch):
+  """pipeline.job fine-tunes by the protocol the run recorded (as `skillplug fewshot` does): a resumed
+  run keeps the record it started with, whatever this experiment's fewshot says now."""
+  exp = experiment.get("quick", ["seeds=0", "policies=skillplug"])
+  recorded = dataclasses.replace(experiment.record(exp, "skillplug"), fewshot=experiment.FewShot(
+      taskset="block_place", steps=3, trainable=experiment.Trainable(skillplug=("interactor", "router"))))
+  trained = []
+
+  def train(cfg, progress=True, record=None):
+    trained.append((cfg, record))
+    if not cfg.init_from:  # the pretraining run, started earlier with `recorded`
+      run_files.write_run_files(cfg.run_dir, cfg, {}, recorded)
+    return cfg.run_dir
+
+  monkeypatch.setattr(loop, "train", train)
+  monkeypatch.setattr(pipeline, "evaluated", lambda *a, **k: [])
+  pipeline.job(exp, "skillplug", 0, tmp_path, record=experiment.record(exp, "skillplug"))
+  [(few, few_record)] = trained[1:]
+  assert (few.taskset, few.max_steps, few.trainable) == ("block_place", 3, ("interactor", "router"))
+  assert few_record == recorded
+  # a variant's groups are in the record its runs start with
+  arms = {v.name: a for v, a in experiment.expand(experiment.get("skill_library"))}
+  assert experiment.record(arms["decoder"], "act").fewshot.trainable.of("act") == ("action_proj",)
+  assert experiment.record(arms["decoder"], "skillplug").fewshot.trainable.of("skillplug") == ("action_proj", "router")
 
 
 def test_cosine_schedule_warms_up_then_decays_to_zero():
@@ -205,7 +231,7 @@ def _edited_configs(dest: Path) -> Path:
 
 def _rows_of(run: Path) -> dict:
   """The run's row beside a K=2 run of the same record, named as evaluation names them."""
-  cfg, record = run_files.read_config(run), run_files.read_record(run)
+  cfg, record = run_files.read_config(run), experiment.read_record(run)
   other = train_config.override(cfg, ["model.plug.num_skills=2"])
   return groups.group_rows([groups.row_fields(c, record) for c in (cfg, other)])
 
@@ -216,12 +242,12 @@ def test_a_run_records_its_fewshot_protocol_and_overrides(tiny_run):
   saved = json.loads((run / "config.json").read_text())
   record = saved["experiment"]
   assert record["config"] == "quick" and record["fewshot"]["steps"] == 2  # the experiment's, overrides included
-  assert record["fewshot"]["trainable_skillplug"] == ["action_head", "router"]
+  assert record["fewshot"]["trainable"]["skillplug"] == ["action_head", "router"]
   assert record["defaults"]["model"]["hidden"] == 64 and record["defaults"]["model"]["policy"] == "skillplug"
   # the TrainConfig's fields are as they always were, the record beside them
   cfg = run_files.read_config(run)
   assert cfg == train_config.from_dict({k: v for k, v in saved.items() if k != "experiment"})
-  overrides = groups.row_fields(cfg, run_files.read_record(run))["overrides"]
+  overrides = groups.row_fields(cfg, experiment.read_record(run))["overrides"]
   assert overrides["model.hidden"] == 32 and overrides["model.plug.num_skills"] == 3 and "lr" not in overrides
   # every result carries them, and a few-shot run keeps its source's record
   assert all(r["overrides"] == overrides for r in summary["pretrain"]["results"] + summary["fewshot"]["results"]
@@ -239,15 +265,15 @@ def test_editing_the_config_afterwards_changes_neither_row_nor_fewshot(tiny_run,
   key = groups.training_key(run_files.read_config(run))
   assert "model.hidden" not in groups.todays_overrides(key)  # what reading today's file would say
   assert _rows_of(run) == before  # names and overrides as recorded
-  source, plan = run_files.read_config(run), run_files.read_record(run).fewshot
+  source, plan = run_files.read_config(run), experiment.read_record(run).fewshot
   few = fewshot.fewshot_config(source, run, "mouse_push", plan)
   assert (few.max_steps, few.trainable) == (2, ("action_head", "router"))
   # a resumed run keeps the record it started with
   loop.train(source, progress=False, record=experiment.record(experiment.get("quick"), "skillplug"))
-  assert run_files.read_record(run).fewshot == plan
+  assert experiment.read_record(run).fewshot == plan
   # and with no config file to read at all, the run is still named and adapted
   monkeypatch.setattr(experiment, "get", lambda *a, **k: pytest.fail("read a config file"))
-  assert _rows_of(run) == before and run_files.read_record(run).fewshot == plan
+  assert _rows_of(run) == before and experiment.read_record(run).fewshot == plan
 
 
 def test_a_run_or_result_without_a_record_falls_back_to_todays_config(tiny_run, tmp_path, monkeypatch, capsys):
@@ -261,7 +287,7 @@ def test_a_run_or_result_without_a_record_falls_back_to_todays_config(tiny_run, 
   edited = _edited_configs(tmp_path / "configs")
   monkeypatch.setattr(experiment, "configs_dir", lambda: edited)
   capsys.readouterr()
-  assert run_files.read_record(old).fewshot.steps == 7  # today's file
+  assert experiment.read_record(old).fewshot.steps == 7  # today's file
   assert "records no experiment config" in capsys.readouterr().err
   # a result without overrides (an older evaluation or summary): named against today's file, with a warning
   key = groups.training_key(run_files.read_config(old))

@@ -38,7 +38,10 @@ class DemoConfig:
   image_size: tuple[int, int] = (64, 64)  # (H, W)
   seed: int = 0
   batch: int = 64  # environments simulated at once
-  backend: str = "auto"  # envs.BACKENDS; the dataset's name and metadata hold the resolved one
+  backend: str = "auto"  # envs.BACKENDS; resolved when the config is made, so it holds "mujoco" or "mjx-warp"
+
+  def __post_init__(self):  # an API call's edge: "auto" is resolved here, once (envs.resolve_backend)
+    object.__setattr__(self, "backend", envs.resolve_backend(self.backend))
 
   @property
   def tasks(self) -> tuple[str, ...]:
@@ -48,7 +51,7 @@ class DemoConfig:
   def name(self) -> str:
     obs = f"img{self.image_size[0]}x{self.image_size[1]}" if self.images else "state"
     return (f"{self.taskset.replace(',', '+')}_{self.demos}demos_{obs}_seed{self.seed}_"
-            f"{envs.resolve_backend(self.backend)}")
+            f"{self.backend}")
 
   @property
   def spec(self) -> rlds.DatasetSpec:
@@ -111,7 +114,7 @@ def _write(cfg: DemoConfig, out: str | os.PathLike, tasks: tuple[str, ...], fina
   building = Path(out) / f".{cfg.name}.building"
   shutil.rmtree(building, ignore_errors=True)
   metadata = dict(generator="skillplug_jax.data.demos", config=_config_dict(cfg),
-                  device=str(jax.devices()[0]), backend=envs.resolve_backend(cfg.backend),
+                  device=str(jax.devices()[0]), backend=cfg.backend,
                   renderer=envs.renderer_of(cfg.backend) if cfg.images else None,
                   per_task={t: {k: v for k, v in s.items() if k != "reset_index"} for t, s in stats.items()})
   version_dir = rlds.write_dataset(building, cfg.spec, records, metadata)
@@ -132,7 +135,6 @@ def _write(cfg: DemoConfig, out: str | os.PathLike, tasks: tuple[str, ...], fina
 
 def _config_dict(cfg: DemoConfig) -> dict:
   d = dataclasses.asdict(cfg)
-  d["backend"] = envs.resolve_backend(cfg.backend)
   d["image_size"] = list(cfg.image_size)
   return d
 

@@ -25,10 +25,9 @@ import envs
 from envs import rollout as env_rollout
 from envs.rollout import Controller, EpisodeResults, local_devices_for, run_episodes
 from envs.env import SOLVER_LIMIT_BITS, solver_limit_counts
-from skillplug_jax import diagnostics
+from skillplug_jax import diagnostics, experiment
 from skillplug_jax.evaluate import groups, tables
 from skillplug_jax.evaluate.policy_controller import load_controller
-from skillplug_jax.train import run_files
 
 EVAL_SEED = 1000
 VIDEO_SIZE = (128, 128)  # (H, W) of side-camera videos of state-based policies (image policies: their own size)
@@ -63,6 +62,7 @@ def evaluate_task(task: str, controller: Controller, trials: int, seed: int = EV
   trial i's look depends on (seed, i) alone; videos show it too). A
   controller that reads cameras (`Controller.image_size`) is drawn at its
   own size whatever `render` says; an `image_size` that differs is an error.
+  The API's edge: a `backend` of "auto" is resolved here, once.
   """
   backend = envs.resolve_backend(backend)
   envs.appearance.check(appearance)
@@ -185,17 +185,18 @@ def evaluate_runs(run_dirs: Sequence[str | Path], tasks: Sequence[str], trials: 
   Runs whose training configurations differ only in the seed (and where
   they were written) are one row's training seeds; any other difference
   makes another row, named by its overrides against the run's record
-  (`run_files.read_record`). videos > 0: GIFs of each run's first trials in
+  (`experiment.read_record`). videos > 0: GIFs of each run's first trials in
   video_dir/<run name>/. appearance: "default" or "shifted" (`evaluate_task`). routing_smoothing:
-  `policy_controller`'s (ours; 0: the router's own weights).
+  `policy_controller`'s (ours; 0: the router's own weights). The API's edge: a
+  `backend` of "auto" is resolved here, once, and passed down.
   """
+  backend = envs.resolve_backend(backend)
   envs.appearance.check(appearance)  # before any run is loaded
   results = []
   # Every run is loaded first: a missing or damaged checkpoint fails before any evaluation.
   smooth = dict(routing_smoothing=routing_smoothing) if routing_smoothing else {}
   loaded = [(run, *load_controller(run, query_every=query_every, **smooth)) for run in run_dirs]
-  records = {run: run_files.read_record(run) for run in run_dirs}
-  backend = envs.resolve_backend(backend)
+  records = {run: experiment.read_record(run) for run in run_dirs}
   for run, _, cfg in loaded:
     warn_if_other_renderer(run, cfg, backend)
   bar = tqdm(total=len(run_dirs) * len(tasks) * trials, desc="eval", unit="trial", file=sys.stderr,

@@ -53,6 +53,7 @@ from typing import Mapping
 import flax.linen as nn
 import jax.numpy as jnp
 
+from envs.names import OBJECT_STATE_DIM  # cheap: not the suite
 from skillplug_jax.model.config import ModelConfig
 from skillplug_jax.model.resnet import ResNet18
 from skillplug_jax.model.transformer import (DecoderLayer, TransformerEncoder,
@@ -82,13 +83,12 @@ def object_slots(width: int) -> int:
   return width // OBJECT_SLOT_DIM
 
 
-def num_tokens(config: ModelConfig, object_width: int | None = None) -> int:
+def num_tokens(config: ModelConfig, object_width: int = OBJECT_STATE_DIM) -> int:
   """N, the number of scene tokens the encoder emits (object_width: the object
-  state's width, envs.OBJECT_STATE_DIM unless given)."""
+  state's width, envs.names.OBJECT_STATE_DIM unless given)."""
   if not config.use_images:
     if config.object_tokens == "per_object":
-      import envs  # the padded width lives with the tasks
-      return 2 + object_slots(envs.OBJECT_STATE_DIM if object_width is None else object_width)
+      return 2 + object_slots(object_width)
     return 3
   h, w = feature_map_size(config)
   return 2 + len(config.cameras) * h * w

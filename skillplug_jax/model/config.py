@@ -11,6 +11,7 @@ from typing import Tuple
 
 import jax.numpy as jnp
 
+from envs.names import CAMERAS  # cheap: not the suite (envs/__init__.py)
 from skillplug_jax import validation
 from skillplug_jax.model.plug import PlugConfig
 
@@ -20,9 +21,6 @@ POSITIONS = ("input", "qk")
 # built, and the default.
 OBJECT_TOKENS = ("one", "per_object")
 DTYPES = ("float32", "bfloat16")
-# envs.robot.CAMERAS, copied: envs is slow to import and a config must be cheap to build
-# (tests/test_config_validation.py keeps the two equal).
-CAMERAS = ("side", "wrist")
 
 # What a run recorded before a field existed meant: config.json files written
 # before issue 12 lack these keys and must load as the model they trained.

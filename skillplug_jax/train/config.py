@@ -13,7 +13,9 @@ import dataclasses
 import typing
 from pathlib import Path
 
+from envs.names import BACKENDS  # cheap: not the suite (envs/__init__.py)
 from skillplug_jax import validation
+from skillplug_jax.data.segments import LABELLERS as SKILL_LABELLERS  # numpy only
 from skillplug_jax.losses import LossWeights
 from skillplug_jax.model import config as model_config
 from skillplug_jax.model.config import ModelConfig
@@ -21,11 +23,6 @@ from skillplug_jax.model.freeze import GROUPS
 
 
 LR_SCHEDULES = ("constant", "cosine")
-# envs.BACKENDS, copied: envs is slow to import and a config must be cheap to build
-# (tests/test_config_validation.py keeps the two equal).
-BACKENDS = ("auto", "mujoco", "mjx-warp")
-# skillplug_jax.data.segments.LABELLERS, copied for the same reason (the test keeps them equal).
-SKILL_LABELLERS = ("tabletop_phases", "toy_targets")
 
 
 _count = validation.count
@@ -52,7 +49,7 @@ class TrainConfig:
   demos: int = 300  # per task; images follow model.use_images and model.image_size
   data_seed: int = 0
   data_dir: str = "results/datasets"
-  backend: str = "auto"  # physics of the demonstrations (envs.BACKENDS); a run records the resolved one
+  backend: str = "auto"  # physics of the demonstrations (envs.BACKENDS); resolved by `loop.train`, the run records it
   # Ours (issue 27): every step's `skill_label` mined from the demonstrations by this labeller
   # (data/segments.py), which loss.router_label trains the router to predict. '': none (the toy:
   # its ground-truth primitive, the oracle).
@@ -133,6 +130,10 @@ def _set(obj, path, value, full_key):
     raise ValueError(f"unknown setting {full_key!r}; {type(obj).__name__} has: {valid}")
   if len(path) > 1:
     return dataclasses.replace(obj, **{name: _set(getattr(obj, name), path[1:], value, full_key)})
+  if dataclasses.is_dataclass(getattr(obj, name)):  # a group of settings: one of them is set
+    inner = ", ".join(f.name for f in dataclasses.fields(getattr(obj, name)))
+    first = dataclasses.fields(getattr(obj, name))[0].name
+    raise ValueError(f"{full_key} holds settings ({inner}): set one of them, e.g. {full_key}.{first}=...")
   try:
     parsed = _parse(value, hints[name])
   except ValueError as e:

@@ -36,11 +36,11 @@ from skillplug_jax import dir_lock, losses
 from skillplug_jax.data import demos as demo_data
 from skillplug_jax.data import loader as data_loader
 from skillplug_jax.data import segments
-from skillplug_jax.experiment import RunRecord
 from skillplug_jax.model import freeze
 from skillplug_jax.model.policy import Policy
 from skillplug_jax.train import checkpoint, preemption, run_files
 from skillplug_jax.train.config import TrainConfig
+from skillplug_jax.train.run_record import RunRecord
 from skillplug_jax.train.scalars import ScalarLog
 
 
@@ -152,7 +152,8 @@ def train(cfg: TrainConfig, progress: bool = True, stop_after: int | None = None
   record: what the run keeps of its experiment config (`experiment.record`), to
   name its table row and adapt it later; a resumed run keeps the one it started
   with. stop_after: return after this many steps of this call, as a kill would
-  (tests use it to check that resuming is exact).
+  (tests use it to check that resuming is exact). The training API's edge: a
+  `cfg.backend` of "auto" is resolved here, once, and the run records the result.
   """
   cfg = dataclasses.replace(cfg, backend=envs.resolve_backend(cfg.backend))
   with writer_lock(cfg.run_dir):

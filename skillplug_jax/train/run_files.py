@@ -2,14 +2,14 @@
 
     <run>/config.json       the TrainConfig (model, losses, data, optimiser), and under
                             "experiment" the run's record of its experiment config
-                            (`experiment.RunRecord`: config name, few-shot protocol, the
+                            (`run_record.RunRecord`: config name, few-shot protocol, the
                             config's training settings its overrides are read against)
     <run>/norm_stats.json   the dataset's action / joint-position / object-state statistics
 
 The record is written when the run starts and kept when it resumes, so a config
 file edited later does not rename the run's table row or change how it is adapted.
-Runs from before the record load as before; their record is rebuilt from today's
-config file, with a warning (`read_record`).
+Runs from before the record load as before (`stored_record` is None); their record
+is rebuilt from today's config file, with a warning (`experiment.read_record`).
 """
 
 from __future__ import annotations
@@ -20,9 +20,9 @@ from pathlib import Path
 
 import jax
 
-from skillplug_jax import experiment
 from skillplug_jax.atomic_json import write_json_atomic
 from skillplug_jax.train import config as train_config
+from skillplug_jax.train import run_record
 from skillplug_jax.train.checkpoint import CheckpointError
 
 CONFIG_FILE = "config.json"
@@ -34,7 +34,7 @@ RESUMABLE_CHANGES = {"workdir", "log_every", "ckpt_every", "keep_checkpoints", "
                      "data_dir"}
 
 
-def write_run_files(run_dir: Path, cfg, stats: dict, record: experiment.RunRecord | None = None) -> None:
+def write_run_files(run_dir: Path, cfg, stats: dict, record: run_record.RunRecord | None = None) -> None:
   """config.json (with `record`, when given) and norm_stats.json, each written atomically; of
   several processes training one run (jax.distributed), the first writes them."""
   if jax.process_index() != 0:
@@ -42,7 +42,7 @@ def write_run_files(run_dir: Path, cfg, stats: dict, record: experiment.RunRecor
   run_dir.mkdir(parents=True, exist_ok=True)
   payload = train_config.to_dict(cfg)
   if record is not None:
-    payload[RECORD_KEY] = experiment.record_to_dict(record)
+    payload[RECORD_KEY] = run_record.record_to_dict(record)
   write_json_atomic(run_dir / CONFIG_FILE, payload)
   write_json_atomic(run_dir / STATS_FILE, stats)
 
@@ -66,25 +66,16 @@ def read_config(run_dir: Path) -> train_config.TrainConfig:
     raise CheckpointError(f"{Path(run_dir) / CONFIG_FILE} is not a readable training config: {e}") from e
 
 
-def stored_record(run_dir: Path) -> experiment.RunRecord | None:
+def stored_record(run_dir: Path) -> run_record.RunRecord | None:
   """The record the run keeps in its config.json; None for a run from before runs kept one."""
   d = _read_json(run_dir).get(RECORD_KEY)
   if d is None:
     return None
   try:
-    return experiment.record_from_dict(d)
+    return run_record.record_from_dict(d)
   except (ValueError, TypeError, KeyError) as e:
     raise CheckpointError(f"{Path(run_dir) / CONFIG_FILE}: its '{RECORD_KEY}' entry is not a readable "
                           f"record: {e}") from e
-
-
-def read_record(run_dir: Path) -> experiment.RunRecord:
-  """The run's record; for a run without one, today's config file's, with a warning."""
-  record = stored_record(run_dir)
-  if record is not None:
-    return record
-  cfg = read_config(run_dir)
-  return experiment.todays_record(cfg.preset, cfg.model.policy, run_dir)
 
 
 def read_stats(run_dir: Path) -> dict:
