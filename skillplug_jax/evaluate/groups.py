@@ -116,6 +116,11 @@ def todays_overrides(key: Mapping[str, Any]) -> dict:
 _SHOWN = {f"model.plug.{new}": old for old, new in model_config.LEGACY_PLUG_FIELDS.items()}
 
 
+def _published_order(name: str) -> str:
+  """Where a setting stands in a row's name: by its name before issue 40 nested the plug's."""
+  return f"model.{_SHOWN[name]}" if name in _SHOWN else name
+
+
 def _short(name: str) -> str:
   return _SHOWN.get(name, name.removeprefix("model."))
 
@@ -132,7 +137,7 @@ def row_names(keys: Sequence[Mapping[str, Any]], changes: Sequence[Mapping[str, 
   labels = [_label(k) for k in keys]
 
   def differing(fields):
-    return [f for f in sorted(fields, key=lambda f: (f != "preset", f))
+    return [f for f in sorted(fields, key=lambda f: (f != "preset", _published_order(f)))
             if f != "model.policy" and len({json.dumps(k.get(f)) for k in keys}) > 1]
 
   def name(key, label, fields):
