@@ -36,7 +36,8 @@ from skillplug_jax.train.config import TrainConfig
 _GROUPS = validation.each(validation.one_of(GROUPS), distinct=True)
 _FEWSHOT_RULES = dict(taskset=validation.text(), demos=validation.count(1),
                       steps=validation.count(0, " (0: the source run's own `epochs`)"),
-                      trainable_act=_GROUPS, trainable_skillplug=_GROUPS, marginal_terms=validation.flag())
+                      trainable_act=_GROUPS, trainable_skillplug=_GROUPS, marginal_terms=validation.flag(),
+                      train_overrides=validation.each(validation.text()))
 # Each (policy, seed) is one run directory: a policy or seed given twice would train it twice at once.
 _EXPERIMENT_RULES = dict(
     policies=validation.each(validation.one_of(POLICIES), nonempty=True, distinct=True),
@@ -75,6 +76,9 @@ class FewShot:
   # (loss.usage, loss.load_balance). They ask a batch to spread over the skills, which suits
   # pretraining's batch of many tasks; a few-shot batch holds one task. False: both weigh 0.
   marginal_terms: bool = True
+  # TrainConfig overrides (train/config.py syntax, `loss.router_label=0`) of the fine-tune alone,
+  # applied after the rest of this protocol (`fewshot.fewshot_config`); pretraining keeps its own.
+  train_overrides: tuple[str, ...] = ()
 
   def __post_init__(self):
     validation.check(self, "fewshot.", _FEWSHOT_RULES)
@@ -133,7 +137,13 @@ def expand(exp: Experiment) -> list[tuple[Variant, Experiment]]:
   if not exp.variants:
     return [(Variant(""), exp)]
   base = dataclasses.replace(exp, variants=())
-  return [(v, train_config.override(base, v.overrides)) for v in exp.variants]
+  arms = []
+  for v in exp.variants:
+    try:
+      arms.append((v, train_config.override(base, v.overrides)))
+    except ValueError as e:  # which arm, as well as which setting
+      raise ValueError(f"variant {v.name!r}: {e}") from e
+  return arms
 
 
 def only(exp: Experiment, wanted: str, config: str = "") -> Experiment:

@@ -56,7 +56,7 @@ REJECTED = [
     ("train", "keep_checkpoints", 0), ("train", "skill_labels", "phases"),
     ("fewshot", "taskset", ""), ("fewshot", "demos", 0), ("fewshot", "steps", -1),
     ("fewshot", "trainable_act", ("head",)), ("fewshot", "trainable_skillplug", ("router", "router")),
-    ("fewshot", "marginal_terms", "no"),
+    ("fewshot", "marginal_terms", "no"), ("fewshot", "train_overrides", "loss.sd=0"),
     ("experiment", "policies", ()), ("experiment", "policies", ("act", "act")),
     ("experiment", "policies", ("diffusion",)), ("experiment", "seeds", ()), ("experiment", "seeds", (0, 0)),
     ("experiment", "seeds", (-1,)), ("experiment", "trials", 0), ("experiment", "eval_seed", -1),
@@ -181,8 +181,7 @@ def test_every_shipped_config_builds():
       for policy in arm.policies:
         for seed in arm.seeds:
           assert arm.train_config(policy, seed).model.policy == policy
-  from experiments import toy_skills  # the toy problem's own training settings
-  assert toy_skills.toy_train_config().preset == "toy_skills"
+  assert experiment.get("toy_skills").train.preset == "toy_skills"  # the toy problem's config
 
 
 def test_copied_names_match_their_source():
