@@ -141,7 +141,9 @@ def expand(exp: Experiment) -> list[tuple[Variant, Experiment]]:
   for v in exp.variants:
     try:
       arms.append((v, train_config.override(base, v.overrides)))
-    except ValueError as e:  # which arm, as well as which setting
+    except validation.ConfigError:  # a bad value: named by its key (what the pipeline's workers pickle)
+      raise
+    except ValueError as e:  # an unknown setting: which arm, as well as which key
       raise ValueError(f"variant {v.name!r}: {e}") from e
   return arms
 
