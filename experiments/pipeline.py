@@ -47,6 +47,7 @@ from skillplug_jax import experiment, fewshot
 from skillplug_jax.atomic_json import write_json_atomic, write_text_atomic
 from skillplug_jax.startup import cpu_name
 from skillplug_jax.evaluate import groups, protocol, toy_rollout
+from skillplug_jax.evaluate.routing import renamed
 from skillplug_jax.evaluate.policy_controller import load_controller
 from skillplug_jax.experiment import Experiment, RunRecord, Variant
 from skillplug_jax.train import loop, preemption, run_files
@@ -83,7 +84,7 @@ def evaluated(run: Path, tasks, exp: Experiment, name: str, source: Path, extra:
   """
   path = run / "eval" / f"{name}_trials{exp.trials}_seed{exp.eval_seed}.json"
   if path.exists():
-    return json.loads(path.read_text())["results"]
+    return renamed(json.loads(path.read_text()))["results"]  # written before today's key names too
   controller, cfg = load_controller(run)
   row = groups.row_fields(run_files.read_config(source), run_files.read_record(source))
   results = []

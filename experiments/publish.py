@@ -31,7 +31,8 @@ def reference_results(path: str, stage: str) -> list[dict]:
   p = Path(path)
   if not p.exists():
     raise ValueError(f"reference summary {p} does not exist (a published pipeline summary.json)")
-  part = json.loads(p.read_text()).get(stage, {})
+  from skillplug_jax.evaluate import routing
+  part = routing.renamed(json.loads(p.read_text())).get(stage, {})  # written before today's key names too
   published = {groups.key_id(row["config"]): row["overrides"] for row in part.get("rows", {}).values()
                if "overrides" in row}
   out = []

@@ -207,6 +207,12 @@ def test_old_summaries_read_with_todays_names():
   assert set(diag) >= {"routing_entropy_per_query", "usage_entropy", "effective_skills"}
   first = next(r for r in new["pretrain"]["results"] if r.get("diagnostics"))
   assert "mean_weights" in first and "routing_entropy_per_query" in first["diagnostics"]
+  # as a reference (rows read, not run), an old summary's results tabulate with today's diagnostics
+  from experiments import publish
+  from skillplug_jax.evaluate import tables
+  ref = publish.reference_results(str(root / "skill_library_image/2026-12-06_phases_w01_seed0/summary.json"), "pretrain")
+  tabled = tables.summarise(ref, sorted({r["task"] for r in ref}))
+  assert all("routing_entropy_per_query" in d["mean"] for d in tabled["diagnostics"].values())
   toy_old = json.loads((root / "toy_skills" / "2026-12-03_v2_screen_seed0" / "summary.json").read_text())
   toy_new = routing.renamed(toy_old)  # the toy's summaries already used these names
   assert toy_new["variants"]["skillplug_paper"]["routing_entropy_per_query"] == \
