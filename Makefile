@@ -41,13 +41,14 @@ test: install
 quickstart: install
 	$(PY) -m experiments.quickstart --out $(OUT)/quickstart
 
-# The skill library's fast screen (experiments/toy_skills.py): ACT and ACT+SkillPlug on the toy
-# point-robot problem (envs/toy_skills.py), minutes on a CPU. TOY_VARIANTS=all (or a comma list)
-# screens every variant; TOY_SEEDS=0,1,2 for mean +- SE.
-TOY_VARIANTS ?=
+# The skill library's fast screen (experiments/configs/toy_skills.py, run by the pipeline): ACT and
+# ACT+SkillPlug on the toy point-robot problem (envs/toy_skills.py), minutes on a CPU.
+# TOY_VARIANTS=all (or a comma list) screens every variant (default: paper, ACT and the paper's
+# ACT+SkillPlug); TOY_SEEDS=0,1,2 for mean +- SE.
+TOY_VARIANTS ?= paper
 TOY_SEEDS ?=
 toy-skills: install
-	$(PY) -m experiments.toy_skills --out $(OUT)/toy_skills $(if $(TOY_VARIANTS),--variants $(TOY_VARIANTS)) $(if $(TOY_SEEDS),--seeds $(TOY_SEEDS))
+	$(PY) -m experiments.pipeline --config toy_skills --out $(OUT)/toy_skills $(if $(filter-out all,$(TOY_VARIANTS)),--variants $(TOY_VARIANTS)) $(if $(TOY_SEEDS),--set seeds=$(TOY_SEEDS))
 
 experts: install
 	mkdir -p $(OUT)

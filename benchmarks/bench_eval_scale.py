@@ -90,7 +90,7 @@ def main(argv=None) -> int:
     print(f"batch {batch}: {r['tasks']} tasks x {r['trials']} trials in {r['wall_s']:.0f} s "
           f"({r['tasks'] * r['trials'] / r['wall_s']:.1f} trials/s), peak RSS {r['peak_rss_mb']:.0f} MB, "
           f"first {args.prefix} trials equal: {all(r['prefix_equal'].values()) if r['prefix_equal'] else '-'}")
-  from benchmarks.soak_kill import cpu_name
+  from skillplug_jax.startup import cpu_name
   write_json_atomic(Path(args.out), dict(run=args.run or "random weights, quick preset ACT", taskset=args.taskset,
                                          cpu=cpu_name(), rows=rows))
   print(f"wrote {args.out}")

@@ -28,6 +28,7 @@ import jax
 import numpy as np
 
 from skillplug_jax.atomic_json import write_json_atomic
+from skillplug_jax.startup import cpu_name
 
 # Runs `skillplug pretrain ARGS...` with checkpoint.save wrapped: the first save this process asks
 # for is handed to orbax, which writes it in the background, and the process SIGKILLs itself at once.
@@ -178,16 +179,6 @@ def main(argv=None) -> int:
   print(f"{'bit-identical' if result['identical'] else 'DIFFERENT'} after {result['landed']} kills "
         f"({result['wall_s']:.0f} s); wrote {args.out}")
   return 0 if result["identical"] else 1
-
-
-def cpu_name() -> str:
-  """'<model name>, family F model M' from /proc/cpuinfo: the speed figures' machine."""
-  try:
-    info = dict(line.split(":", 1) for line in open("/proc/cpuinfo").read().split("\n\n")[0].splitlines() if ":" in line)
-  except OSError:
-    return "unknown"
-  info = {k.strip(): v.strip() for k, v in info.items()}
-  return f"{info.get('model name', '?')}, family {info.get('cpu family', '?')} model {info.get('model', '?')}"
 
 
 if __name__ == "__main__":

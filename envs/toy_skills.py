@@ -81,6 +81,21 @@ def task_name(task: int) -> str:
   return ">".join(_SYMBOL[p] for p in TASKS[task])
 
 
+# The tasks as the experiment pipeline names them (file-safe: a run's folder is named by its task),
+# and its tasksets: the seen tasks (multi-task training) and the unseen ones (few-shot).
+TASKSET = "toy_skills"
+FEWSHOT_TASKSET = "toy_skills_fewshot"
+
+
+def task_id(task: int) -> str:
+  """'toy_ATB' style: the task's name in results and folders (`task_name` is its table heading)."""
+  return "toy_" + "".join(_SYMBOL[p] for p in TASKS[task])
+
+
+TASKSETS = {TASKSET: tuple(task_id(t) for t in SEEN), FEWSHOT_TASKSET: tuple(task_id(t) for t in UNSEEN)}
+TASK_IDS = {task_id(t): t for t in range(NUM_TASKS)}
+
+
 @dataclasses.dataclass(frozen=True)
 class ToySkillsConfig:
   # 0.1, not 0.05: at 0.05 the quick-size ACT (3000 steps) reached 43% with a held-out position

@@ -31,6 +31,7 @@ from pathlib import Path
 
 import envs
 from skillplug_jax.atomic_json import write_json_atomic, write_text_atomic
+from skillplug_jax.evaluate.tables import mean_se
 from skillplug_jax.model.config import LEGACY_DEFAULTS
 
 # Every variant names each setting it depends on, so that a change of the
@@ -131,7 +132,8 @@ def summarise(parts: list[dict], variants, tasks, reference: list[dict] = ()) ->
 
 
 def _se(x):
-  return statistics.stdev(x) / len(x) ** 0.5 if len(x) > 1 else 0.0
+  """The SE of `tables.mean_se`, 0 for one seed (this table prints one for every cell)."""
+  return mean_se(x)[1] or 0.0
 
 
 def markdown(rows: dict, tasks) -> str:

@@ -43,19 +43,24 @@ from pathlib import Path
 import jax
 
 import envs
+from envs import toy_skills
 from experiments import publish
 from skillplug_jax import experiment, fewshot
 from skillplug_jax.atomic_json import write_json_atomic, write_text_atomic
-from skillplug_jax.evaluate import groups, protocol
+from skillplug_jax.startup import cpu_name
+from skillplug_jax.evaluate import groups, protocol, toy_rollout
+from skillplug_jax.evaluate.routing import renamed
 from skillplug_jax.evaluate.policy_controller import load_controller
 from skillplug_jax.experiment import Experiment, RunRecord, Variant
 from skillplug_jax.train import loop, preemption, run_files
+from skillplug_jax.train import toy as toy_train
 from skillplug_jax.train.config import TrainConfig
 
 
 def tasks_of(taskset: str) -> tuple[str, ...]:
-  """A taskset name, a task name, or several of either, comma-separated."""
-  return tuple(n for part in taskset.split(",") for n in envs.taskset(part))
+  """A taskset name, a task name, or several of either, comma-separated (the toy's: envs/toy_skills.py)."""
+  return tuple(n for part in taskset.split(",")
+               for n in (toy_skills.TASKSETS.get(part) or envs.taskset(part)))
 
 
 def pretrain_config(exp: Experiment, policy: str, seed: int, out: Path,
@@ -81,7 +86,7 @@ def evaluated(run: Path, tasks, exp: Experiment, name: str, source: Path, extra:
   """
   path = run / "eval" / f"{name}_trials{exp.trials}_seed{exp.eval_seed}.json"
   if path.exists():
-    return json.loads(path.read_text())["results"]
+    return renamed(json.loads(path.read_text()))["results"]  # written before today's key names too
   controller, cfg = load_controller(run)
   row = groups.row_fields(run_files.read_config(source), experiment.read_record(source))
   results = []
@@ -107,6 +112,12 @@ def job(exp: Experiment, policy: str, seed: int, out: Path, data_dir: Path | Non
   The fine-tunes follow the few-shot protocol the run recorded (a resumed run: the one it
   started with), as `skillplug fewshot` does, not `exp.fewshot`. `exp.train.backend` is
   resolved (`run`): training and evaluation run on it.
+
+  A config on the toy problem (`loop.is_toy`: taskset toy_skills) trains on demonstrations made
+  in memory (`train.toy.train`, the same training step, a run directory like any other) and is
+  evaluated by the toy's closed loop (`evaluate.toy_rollout.evaluated`, results in the same
+  format); its extras per run (routing against the primitives, fixed-skill probe, zero-shot)
+  come back under "toy".
   """
   envs.quiet_warp()
   label, stages = f"{variant + ' ' if variant else ''}{policy} seed {seed}", {}
@@ -116,11 +127,17 @@ def job(exp: Experiment, policy: str, seed: int, out: Path, data_dir: Path | Non
     print(f"[pipeline] {label}: {name} done in {stages[name]:.0f} s", file=sys.stderr, flush=True)
 
   cfg = pretrain_config(exp, policy, seed, out, data_dir)
+  toy = loop.is_toy(cfg)
+  train, evaluate = (toy_train.train, toy_rollout.evaluated) if toy else (loop.train, evaluated)
   t0 = time.time()
-  run = loop.train(cfg, progress=False, record=record or experiment.record(exp, policy))
+  run = train(cfg, progress=False, record=record or experiment.record(exp, policy))
   stage("pretrain", t0)
   t0 = time.time()
-  pretrain = evaluated(run, tasks_of(cfg.taskset), exp, cfg.taskset, run)
+  pretrain = evaluate(run, tasks_of(cfg.taskset), exp, cfg.taskset, run)
+  extras = []
+  if toy:
+    extras = [dict(toy_rollout.run_extras(run, exp), run=str(run), variant=variant,
+                   **groups.row_fields(run_files.read_config(run), experiment.read_record(run)))]
   stage("evaluate", t0)
   adapted = []
   if exp.run_fewshot:
@@ -129,14 +146,14 @@ def job(exp: Experiment, policy: str, seed: int, out: Path, data_dir: Path | Non
     plan = recorded.fewshot  # the protocol the run recorded: this experiment's, its overrides included
     for task in tasks_of(plan.taskset):
       few = fewshot.fewshot_config(source, run, task, plan)
-      few_run = loop.train(few, progress=False, record=recorded)
+      few_run = train(few, progress=False, record=recorded)
       steps = few.num_steps(plan.demos)  # the dataset holds `demos` episodes of the task
-      results = evaluated(few_run, [task], exp, task, run, extra=dict(source=str(run)))
+      results = evaluate(few_run, [task], exp, task, run, extra=dict(source=str(run)))
       adapted += [dict(r, trainable=list(few.trainable), steps=steps) for r in results]
     stage("few-shot adapt + evaluate", t0)
   if variant:  # which arm of the experiment each result belongs to
     pretrain, adapted = [dict(r, variant=variant) for r in pretrain], [dict(r, variant=variant) for r in adapted]
-  return dict(run=str(run), pretrain=pretrain, fewshot=adapted, stages_s=stages)
+  return dict(run=str(run), pretrain=pretrain, fewshot=adapted, stages_s=stages, **({"toy": extras} if toy else {}))
 
 
 def in_workers(workers: int, args: list[tuple]) -> list[dict]:
@@ -219,6 +236,8 @@ def make_datasets(exp: Experiment, out: Path) -> float:
     if not arm.seeds or not arm.policies:
       continue
     source = pretrain_config(arm, arm.policies[0], arm.seeds[0], arm_out, out / "datasets")
+    if loop.is_toy(source):  # the toy's demonstrations are made in memory by each job
+      continue
     loop.load_data(source)
     if arm.run_fewshot:
       first_unseen = tasks_of(arm.fewshot.taskset)[0]  # one dataset holds every unseen task
@@ -261,6 +280,10 @@ def run(exp: Experiment, out: Path, configs: Path | None = None) -> dict:
     summary["fewshot"] = publish.merged_summary(parts, "fewshot", tasks_of(exp.fewshot.taskset), ref["fewshot"])
   if exp.variants:
     summary["variants"] = publish.variant_rows(exp, summary)
+  if any("toy" in part for part in parts):
+    summary["toy"] = dict(publish.toy_summary(parts, summary),
+                          mined_labels=toy_rollout.mined_label_agreement(exp.train))
+    summary["cpu"] = cpu_name()
   return summary
 
 

@@ -3,6 +3,7 @@ writes once its jobs are done, and what a later run reads back as reference rows
 
     merged_summary   one stage's results (the jobs', a reference's) and their tables
     variant_rows     each arm of an ablation or sweep: its rows, its routing entropy
+    toy_summary      the toy problem's extras per row (routing against the primitives, probes)
     report           summary.md: variants, tables, ACT+SkillPlug minus ACT, stages
     publish          summary.{md,json} and the routing arrays, in a folder to commit
 """
@@ -30,7 +31,8 @@ def reference_results(path: str, stage: str) -> list[dict]:
   p = Path(path)
   if not p.exists():
     raise ValueError(f"reference summary {p} does not exist (a published pipeline summary.json)")
-  part = json.loads(p.read_text()).get(stage, {})
+  from skillplug_jax.evaluate import routing
+  part = routing.renamed(json.loads(p.read_text())).get(stage, {})  # written before today's key names too
   published = {groups.key_id(row["config"]): row["overrides"] for row in part.get("rows", {}).values()
                if "overrides" in row}
   out = []
@@ -53,7 +55,7 @@ def variant_rows(exp: Experiment, summary: dict) -> list[dict]:
 
   out = [dict(variant=v.name, label=v.label or v.name, overrides=list(v.overrides),
               rows={s: row_of(s, lambda r, v=v: r.get("variant") == v.name) for s in stages},
-              routing_entropy_frac=routing_entropy([r for r in summary["pretrain"]["results"]
+              routing_entropy_per_query=routing_entropy([r for r in summary["pretrain"]["results"]
                                                     if r.get("variant") == v.name]))
          for v in exp.variants]
   if exp.reference:
@@ -64,7 +66,7 @@ def variant_rows(exp: Experiment, summary: dict) -> list[dict]:
       out.append(dict(variant="", label=f"{name} (reference)", overrides=[],
                       rows={s: row_of(s, lambda r, c=row["config"]: bool(r.get("reference")) and r["config"] == c)
                             for s in stages},
-                      routing_entropy_frac=routing_entropy(mine)))
+                      routing_entropy_per_query=routing_entropy(mine)))
   return out
 
 
@@ -86,7 +88,96 @@ def routing_entropy(results: list[dict]) -> float | None:
   files = [f for f in map(routing_file, results) if f is not None]
   if not files:
     return None
-  return float(sum(s["entropy_frac"] for s in routing.summarise_files(files)) / len(files))
+  return float(sum(s["routing_entropy_per_query"] for s in routing.summarise_files(files)) / len(files))
+
+
+TOY_ROUTING = ("routing_entropy_per_query", "usage_entropy", "effective_skills", "nmi", "nmi_task", "nmi_stage",
+               "nmi_quadrant")
+
+
+def _cell(values: list) -> list | None:
+  """[mean, SE] (SE None for one value) of the values that exist; None if none does."""
+  values = [v for v in values if v is not None]
+  return list(tables.mean_se(values)) if values else None
+
+
+def toy_summary(parts: list[dict], summary: dict) -> dict:
+  """The toy problem's numbers per pretraining row (`evaluate.toy_rollout`), mean and SE over its
+  seeds: stage progress (multi-task, zero-shot, few-shot), zero-shot success, the routing
+  statistics of the seen tasks' closed-loop queries against the primitive label, and the
+  fixed-skill probe (distinct pure primitives, mean purity, uniform-routing success; each
+  seed's skill -> primitive)."""
+  extras = [e for part in parts for e in part.get("toy", [])]
+  out = {}
+  for name, row in summary["pretrain"]["rows"].items():
+    mine = sorted((e for e in extras if e["config"] == row["config"]), key=lambda e: e["train_seed"])
+    if not mine:
+      continue
+
+    def progress(stage):
+      per_seed = {}
+      for r in summary.get(stage, {}).get("results", []):
+        if r["config"] == row["config"] and "stage_progress" in r:
+          per_seed.setdefault(r["train_seed"], []).append(r["stage_progress"])
+      return _cell([sum(v) / len(v) for v in per_seed.values()])
+
+    avg = lambda d: sum(d.values()) / len(d)  # noqa: E731
+    entry = dict(seeds=[e["train_seed"] for e in mine], multitask_progress=progress("pretrain"),
+                 zero_shot_success=_cell([avg(e["zero_shot"]) for e in mine]),
+                 zero_shot_progress=_cell([avg(e["zero_shot_progress"]) for e in mine]),
+                 fewshot_progress=progress("fewshot"))
+    routed = [e["toy_routing"] for e in mine if "toy_routing" in e]
+    entry["routing"] = {k: _cell([r.get(k) for r in routed]) for k in TOY_ROUTING} if routed else None
+    probes = [e["fixed_skill_probe"] for e in mine if "fixed_skill_probe" in e]
+    entry["fixed_skill_probe"] = dict(
+        distinct_pure_primitives=_cell([p["distinct_pure_primitives"] for p in probes]),
+        mean_purity=_cell([p["mean_purity"] for p in probes]),
+        uniform_success=_cell([p["uniform_success"] for p in probes]),
+        per_seed=[{k: [v["primitive"], round(v["purity"], 2)] for k, v in p["skills"].items()} for p in probes],
+    ) if probes else None
+    out[name] = entry
+  return dict(rows=out)
+
+
+def _fmt(cell, pct: bool = False, digits: int = 2) -> str:
+  if cell is None:
+    return "-"
+  mean, se = cell
+  scale, d = (100.0, 1) if pct else (1.0, digits)
+  return f"{mean * scale:.{d}f}" + ("" if se is None else f" ± {se * scale:.{d}f}")
+
+
+def toy_report(summary: dict) -> str:
+  """The toy section of summary.md: per row, what the tables above do not show."""
+  toy = summary["toy"]
+  head = ["row", "seeds", "multi-task stages %", "zero-shot %", "zero-shot stages %", "few-shot stages %",
+          "H(r)/log K", "H(mean r)/log K", "eff. skills", "NMI primitive", "NMI task", "NMI stage",
+          "NMI quadrant", "pure skills", "uniform-routing %"]
+  lines = ["Toy problem (envs/toy_skills.py): stage progress, zero-shot, and the routing of the closed-loop "
+           "queries on the seen tasks against the primitive being executed (NMI of the argmax skill), "
+           "the fixed-skill probe (each skill alone; uniform routing):", "",
+           "| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
+  for name, v in toy["rows"].items():
+    r, p = v["routing"] or {}, v["fixed_skill_probe"] or {}
+    cells = [name, ",".join(map(str, v["seeds"])), _fmt(v["multitask_progress"], True),
+             _fmt(v["zero_shot_success"], True), _fmt(v["zero_shot_progress"], True),
+             _fmt(v["fewshot_progress"], True)]
+    cells += [_fmt(r.get(k)) for k in TOY_ROUTING]
+    cells += [_fmt(p.get("distinct_pure_primitives"), digits=1), _fmt(p.get("uniform_success"), True)]
+    lines.append("| " + " | ".join(cells) + " |")
+  probes = [(name, v) for name, v in toy["rows"].items() if v["fixed_skill_probe"]]
+  if probes:
+    lines += ["", "Fixed-skill probe (seed: skill -> what it does, purity):"]
+    for name, v in probes:
+      for seed, row in zip(v["seeds"], v["fixed_skill_probe"]["per_seed"]):
+        lines.append(f"- {name} seed {seed}: " + ", ".join(f"{k} {prim} {q:.2f}" for k, (prim, q) in row.items()))
+  if "mined_labels" in toy:
+    m = toy["mined_labels"]
+    lines += ["", f"Mined labels (train.skill_labels={m['labeller']}) against the primitive, every demonstration "
+              f"step: NMI {m['nmi']:.3f}, equal {100 * m['equal']:.1f}%."]
+  if summary.get("cpu"):
+    lines += [f"CPU: {summary['cpu']}."]
+  return "\n".join(lines)
 
 
 def publish(summary: dict, text: str, dest: Path) -> None:
@@ -184,7 +275,7 @@ def variants_report(summary: dict) -> str:
       cells.append(f"{_avg(summary[s]['table'], row)} ({', '.join(f's{k}: {x:.1f}' for k, x in seeds.items())})")
     row = v["rows"]["pretrain"]
     seeds = summary["pretrain"]["rows"][row]["seeds"] if row else []
-    ent = v.get("routing_entropy_frac")
+    ent = v.get("routing_entropy_per_query")
     cells.append("-" if ent is None else f"{ent:.3f}")
     lines.append(f"| {v['label']} | {row or '-'} | {','.join(map(str, seeds))} | " + " | ".join(cells) + " |")
   return "\n".join(lines)
@@ -208,6 +299,8 @@ def report(summary: dict) -> str:
               tables.report(summary["fewshot"], f"{fs['demos']} demos, {_fewshot_steps(summary)} fine-tuning "
                             f"steps, {t} paired trials"), "",
               comparison(summary["fewshot"]["table"], "success points, few-shot"), ""]
+  if "toy" in summary:
+    lines += [toy_report(summary), ""]
   lines += ["Stages (s): " + ", ".join(f"{k} {v:.0f}" for k, v in summary["stages_s"].items()),
             f"Runs: {', '.join(summary['runs'])}",
             f"Wall time: {summary['wall_s'] / 60:.1f} min on {summary['device']}, physics on {summary['backend']}."]

@@ -8,7 +8,7 @@ trial's last query).
 
 Per run (variant, policy, seed, stage), over every closed-loop query of every trial:
   usage_entropy        H(mean r) / log K        (1: every skill used alike)
-  query_entropy        mean H(r) / log K        (1: every query uniform)
+  routing_entropy_per_query  mean H(r) / log K  (1: every query uniform)
   effective_skills     exp H(mean r)
   task_skill_mi_norm   I(task; skill) / min(log K, log tasks)
 and, ours, whether routing follows the phases of an episode:
@@ -58,8 +58,8 @@ def task_stats(routing: np.ndarray) -> dict:
     phase_count += np.bincount(phase, minlength=PHASES)
     tv.append(0.5 * np.abs(ep - ep.mean(0)).sum(-1).mean())
   phase_mean = phase_sum / np.maximum(phase_count, 1)[:, None]
-  return dict(queries=int(len(queries)), mean_routing=np.asarray(stats["mean_routing"]).tolist(),
-              query_entropy=float(stats["query_entropy"]), usage_entropy=float(stats["usage_entropy"]),
+  return dict(queries=int(len(queries)), mean_weights=np.asarray(stats["mean_weights"]).tolist(),
+              routing_entropy_per_query=float(stats["routing_entropy_per_query"]), usage_entropy=float(stats["usage_entropy"]),
               phase_skill_mi_norm=_phase_mi_norm(phase_mean, phase_count),
               phase_routing=phase_mean.tolist(), within_episode_tv=float(np.mean(tv)))
 
@@ -67,7 +67,7 @@ def task_stats(routing: np.ndarray) -> dict:
 def _phase_mi_norm(phase_mean: np.ndarray, phase_count: np.ndarray) -> float:
   """Normalised I(phase; skill) from the mean routing of each phase and its number of queries:
   `diagnostics.combine_tasks` with the phases as the 'tasks'."""
-  parts = [dict(queries=n, mean_routing=m, query_entropy=0.0) for m, n in zip(phase_mean, phase_count) if n > 0]
+  parts = [dict(queries=n, mean_weights=m, routing_entropy_per_query=0.0) for m, n in zip(phase_mean, phase_count) if n > 0]
   return diagnostics.combine_tasks(parts)["task_skill_mi_norm"]
 
 
@@ -97,10 +97,10 @@ def markdown(result: dict) -> str:
            "| variant | policy | seed | stage | tasks | H(r)/log K | H(mean r)/log K | eff. skills | task-skill NMI | "
            "phase-skill NMI | within-episode TV | mean routing |", "|---" * 12 + "|"]
   for r in result["runs"]:
-    lines.append(f"| {r['variant'] or '-'} | {r['policy']} | {r['seed']} | {r['stage']} | {int(r['num_tasks'])} | {r['query_entropy']:.3f} | "
+    lines.append(f"| {r['variant'] or '-'} | {r['policy']} | {r['seed']} | {r['stage']} | {int(r['num_tasks'])} | {r['routing_entropy_per_query']:.3f} | "
                  f"{r['usage_entropy']:.3f} | {r['effective_skills']:.2f} | {r['task_skill_mi_norm']:.3f} | "
                  f"{r['phase_skill_mi_norm']:.3f} | {r['within_episode_tv']:.3f} | "
-                 + " / ".join(f"{w:.2f}" for w in r["mean_routing"]) + " |")
+                 + " / ".join(f"{w:.2f}" for w in r["mean_weights"]) + " |")
   return "\n".join(lines) + "\n"
 
 

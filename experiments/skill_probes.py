@@ -39,7 +39,6 @@ import numpy as np
 
 import envs
 from experiments import pipeline
-from experiments.toy_skills import nmi
 from skillplug_jax import diagnostics, experiment
 from skillplug_jax.atomic_json import write_json_atomic, write_text_atomic
 from skillplug_jax.data import loader as data_loader
@@ -47,6 +46,7 @@ from skillplug_jax.data import segments
 from skillplug_jax.evaluate import protocol
 from skillplug_jax.evaluate.tables import mean_se
 from skillplug_jax.evaluate.policy_controller import load_controller
+from skillplug_jax.evaluate.routing import nmi
 from skillplug_jax.experiment import Experiment
 from skillplug_jax.model.policy import Policy
 from skillplug_jax.train import loop, run_files

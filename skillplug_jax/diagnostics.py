@@ -7,11 +7,8 @@ the numbers that tell such a library from a used one, in every training log
 (`routing_stats` per task, `combine_tasks` across a run's tasks).
 
 Routing, from weights r [..., K] (every query, or every sample of a batch):
-  usage_entropy     H(mean r) / log K: 1 when the skills are used equally
-                    overall, 0 when one skill takes every query;
-  query_entropy     mean H(r) / log K: 1 for uniform weights at every query,
-                    0 for one-hot routing;
-  effective_skills  exp H(mean r), between 1 and K;
+usage_entropy, routing_entropy_per_query, effective_skills and mean_weights
+(`evaluate.routing.routing_stats`, the one implementation and its names), and
   task_skill_mi     I(T; S) in nats, with p(s | t) the mean routing of task
                     t's queries (0: every task routed alike), and
                     task_skill_mi_norm, the same over min(log K, log #tasks).
@@ -41,13 +38,14 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from skillplug_jax.evaluate import routing
+
 _EPS = 1e-12
 
 
 def entropy(p: jnp.ndarray) -> jnp.ndarray:
-  """Shannon entropy (nats) of each distribution p [..., K]; finite gradient at p = 0."""
-  p = jnp.asarray(p, jnp.float32)
-  return -(p * jnp.log(jnp.clip(p, _EPS, 1.0))).sum(-1)
+  """Shannon entropy (nats) of each distribution p [..., K], as a jax array: `routing.entropy`."""
+  return routing.entropy(jnp.asarray(p))
 
 
 def _normalised_mi(mi, num_skills, num_tasks):
@@ -67,11 +65,8 @@ def routing_stats(probs: jnp.ndarray, task_ids: jnp.ndarray | None = None,
   """
   num_skills = probs.shape[-1]
   p = jnp.asarray(probs, jnp.float32).reshape(-1, num_skills)
-  log_k = math.log(num_skills)
-  mean = p.mean(axis=0)
-  h_mean = entropy(mean)
-  out = dict(usage_entropy=h_mean / log_k, query_entropy=entropy(p).mean() / log_k,
-             effective_skills=jnp.exp(h_mean), mean_routing=mean)
+  out = routing.routing_stats(p)
+  mean = out["mean_weights"]
   if task_ids is None:
     return out
   ids = jnp.asarray(task_ids).reshape(-1)
@@ -92,10 +87,10 @@ def routing_stats(probs: jnp.ndarray, task_ids: jnp.ndarray | None = None,
 
 def combine_tasks(per_task: Sequence[Mapping]) -> dict:
   """`routing_stats` of a run's queries over all its tasks, from each task's
-  own (mean_routing, query_entropy, and its number of queries under
-  'queries'): the same numbers as on the concatenated queries, without them."""
+  own (mean_weights, routing_entropy_per_query, and its number of queries
+  under 'queries'): the same numbers as on the concatenated queries, without them."""
   counts = np.asarray([t["queries"] for t in per_task], np.float64)
-  means = np.asarray([t["mean_routing"] for t in per_task], np.float64)
+  means = np.asarray([t["mean_weights"] for t in per_task], np.float64)
   num_skills = means.shape[-1]
   p_task = counts / counts.sum()
   mean = p_task @ means
@@ -103,8 +98,9 @@ def combine_tasks(per_task: Sequence[Mapping]) -> dict:
   mi = h(mean) - sum(w * h(m) for w, m in zip(p_task, means))
   n = float((counts > 0).sum())
   return dict(usage_entropy=h(mean) / math.log(num_skills),
-              query_entropy=float(p_task @ np.asarray([t["query_entropy"] for t in per_task])),
-              effective_skills=math.exp(h(mean)), mean_routing=mean.tolist(),
+              routing_entropy_per_query=float(p_task @ np.asarray([t["routing_entropy_per_query"]
+                                                                   for t in per_task])),
+              effective_skills=math.exp(h(mean)), mean_weights=mean.tolist(),
               task_skill_mi=max(mi, 0.0), task_skill_mi_norm=float(_normalised_mi(max(mi, 0.0), num_skills, n)),
               num_tasks=n, queries=int(counts.sum()))
 
@@ -156,7 +152,7 @@ def training_metrics(outputs: Mapping[str, jnp.ndarray], task_ids: jnp.ndarray |
   out = jax.lax.stop_gradient({k: v for k, v in outputs.items() if k != "pred_actions"})
   tid = None if task_ids is None else jax.lax.stop_gradient(task_ids)
   stats = routing_stats(out["router_probs"], tid)
-  names = ["usage_entropy", "query_entropy", "effective_skills"]
+  names = ["usage_entropy", "routing_entropy_per_query", "effective_skills"]
   names += ["task_skill_mi", "task_skill_mi_norm"] if tid is not None else []
   m = {f"diag_{k}": stats[k] for k in names}
   if "skill_tokens" in out and "plug_input" in out:

@@ -100,7 +100,15 @@ def expand(exp: Experiment) -> list[tuple[Variant, Experiment]]:
   if not exp.variants:
     return [(Variant(""), exp)]
   base = dataclasses.replace(exp, variants=())
-  return [(v, train_config.override(base, v.overrides)) for v in exp.variants]
+  arms = []
+  for v in exp.variants:
+    try:
+      arms.append((v, train_config.override(base, v.overrides)))
+    except validation.ConfigError:  # a bad value: named by its key (what the pipeline's workers pickle)
+      raise
+    except ValueError as e:  # an unknown setting: which arm, as well as which key
+      raise ValueError(f"variant {v.name!r}: {e}") from e
+  return arms
 
 
 def only(exp: Experiment, wanted: str, config: str = "") -> Experiment:

@@ -21,6 +21,7 @@ from skillplug_jax import experiment
 from skillplug_jax.evaluate import groups, protocol, tables
 from skillplug_jax.evaluate.policy_controller import load_controller
 from skillplug_jax.experiment import FewShot, Trainable
+from skillplug_jax.train import config as train_config
 from skillplug_jax.train import loop, run_files
 from skillplug_jax.train.config import TrainConfig
 
@@ -28,18 +29,20 @@ from skillplug_jax.train.config import TrainConfig
 def fewshot_config(source: TrainConfig, source_dir: Path, task: str, plan: FewShot, variant: str = "") -> TrainConfig:
   """The fine-tune of `source` on `task` (one of `plan.taskset`) by the few-shot protocol `plan`:
   the one the source run recorded (`experiment.read_record`), or one the caller chose. `variant`
-  names a departure from the recorded protocol: its fine-tunes go to `RUN_fewshot_<variant>/`."""
+  names a departure from the recorded protocol: its fine-tunes go to `RUN_fewshot_<variant>/`.
+  `plan.train_overrides` (TrainConfig `key=value`) are applied last, to the fine-tune alone."""
   steps = plan.steps
   loss, folder = source.loss, f"{source_dir}_fewshot" + (f"_{variant}" if variant else "")
   if not plan.marginal_terms:  # one task's batch: no pressure to spread it over the skills
     loss = dataclasses.replace(loss, usage=0.0)
     folder += "_no_marginal_terms"  # beside the default protocol's fine-tunes, not resuming them
-  return dataclasses.replace(
+  cfg = dataclasses.replace(
       source, taskset=task, data_taskset=plan.taskset, demos=plan.demos, init_from=str(source_dir),
       trainable=plan.trainable.of(source.model.policy), max_steps=steps, loss=loss,
       warmup_steps=min(source.warmup_steps, max(steps // 10, 0)),
       ckpt_every=max(steps, 1) if steps else source.ckpt_every,
       workdir=str(Path(folder) / task))
+  return train_config.override(cfg, plan.train_overrides) if plan.train_overrides else cfg
 
 
 def adapt_and_evaluate(source_runs: Sequence[str | Path], taskset: str = "discoverse_fewshot4",

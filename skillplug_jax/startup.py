@@ -47,3 +47,16 @@ def prepare_if_run_as_module() -> None:
   (Python sets sys.argv[0] to '-m' until it has found the module), not at a library import."""
   if sys.argv[:1] == ["-m"]:
     prepare_process()
+
+
+def cpu_name() -> str:
+  """'<model name>, family F model M' from /proc/cpuinfo: the machine that timings and results
+  name (the one implementation: benchmarks and the pipeline's summaries)."""
+  try:
+    with open("/proc/cpuinfo") as f:
+      first = f.read().split("\n\n")[0]
+    info = dict(line.split(":", 1) for line in first.splitlines() if ":" in line)
+  except OSError:
+    return "unknown"
+  info = {k.strip(): v.strip() for k, v in info.items()}
+  return f"{info.get('model name', '?')}, family {info.get('cpu family', '?')} model {info.get('model', '?')}"

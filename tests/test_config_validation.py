@@ -55,7 +55,7 @@ REJECTED = [
     ("train", "trainable", ("router", "router")), ("train", "log_every", 0), ("train", "ckpt_every", 0),
     ("train", "keep_checkpoints", 0), ("train", "skill_labels", "phases"),
     ("fewshot", "taskset", ""), ("fewshot", "demos", 0), ("fewshot", "steps", -1),
-    ("fewshot", "trainable", ("router",)), ("fewshot", "marginal_terms", "no"),
+    ("fewshot", "trainable", ("router",)), ("fewshot", "marginal_terms", "no"), ("fewshot", "train_overrides", "loss.sd=0"),
     ("trainable", "act", ("head",)), ("trainable", "skillplug", ("router", "router")),
     ("trainable", "act", ["action_head"]),
     ("experiment", "policies", ()), ("experiment", "policies", ("act", "act")),
@@ -209,6 +209,7 @@ def test_every_shipped_config_builds():
       for policy in arm.policies:
         for seed in arm.seeds:
           assert arm.train_config(policy, seed).model.policy == policy
+  assert experiment.get("toy_skills").train.preset == "toy_skills"  # the toy problem's config
 
 
 def test_the_error_pickles_with_its_fields():  # a pipeline worker's error reaches the parent whole

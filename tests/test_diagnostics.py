@@ -139,7 +139,7 @@ def test_diagnostics_change_neither_loss_nor_gradients():
     np.testing.assert_array_equal(g_plain[k], g_diag[k], err_msg=k)
   _, m = losses.total_loss(out, BATCH)
   names = {k for k in m if k.startswith("diag_")}
-  assert {"diag_usage_entropy", "diag_query_entropy", "diag_effective_skills", "diag_task_skill_mi",
+  assert {"diag_usage_entropy", "diag_routing_entropy_per_query", "diag_effective_skills", "diag_task_skill_mi",
           "diag_abs_cos", "diag_fused_offset_ratio", "diag_token_spread"} <= names
   assert all(np.isfinite(float(m[k])) for k in names)
 
@@ -148,7 +148,7 @@ def test_diagnostics_change_neither_loss_nor_gradients():
 def test_routing_stats_of_uniform_routing():
   k = 4
   s = diagnostics.routing_stats(jnp.full((12, k), 1 / k), jnp.arange(12) % 3)
-  assert float(s["query_entropy"]) == pytest.approx(1.0)
+  assert float(s["routing_entropy_per_query"]) == pytest.approx(1.0)
   assert float(s["usage_entropy"]) == pytest.approx(1.0)
   assert float(s["effective_skills"]) == pytest.approx(k)
   assert float(s["task_skill_mi"]) == pytest.approx(0.0, abs=1e-6)
@@ -162,7 +162,7 @@ def test_routing_stats_of_one_skill_per_task():
   tasks = jnp.asarray([3, 1, 0, 2, 2, 1, 0, 3, 1, 2, 3, 0]) * 10  # any labels, relabelled inside
   probs = jax.nn.one_hot(tasks // 10, k)
   s = diagnostics.routing_stats(probs, tasks)
-  assert float(s["query_entropy"]) == pytest.approx(0.0, abs=1e-6)
+  assert float(s["routing_entropy_per_query"]) == pytest.approx(0.0, abs=1e-6)
   assert float(s["usage_entropy"]) == pytest.approx(1.0, abs=1e-6)
   assert float(s["effective_skills"]) == pytest.approx(k, rel=1e-5)
   assert float(s["task_skill_mi"]) == pytest.approx(math.log(k), rel=1e-5)
@@ -188,7 +188,7 @@ def test_combining_tasks_equals_the_stats_of_all_queries():
   combined = diagnostics.combine_tasks(per_task)
   ids = jnp.concatenate([jnp.full(p.shape[0], i) for i, p in enumerate(parts)])
   direct = diagnostics.routing_stats(jnp.concatenate(parts), ids, num_tasks=3)
-  for k in ("usage_entropy", "query_entropy", "effective_skills", "task_skill_mi", "task_skill_mi_norm"):
+  for k in ("usage_entropy", "routing_entropy_per_query", "effective_skills", "task_skill_mi", "task_skill_mi_norm"):
     assert combined[k] == pytest.approx(float(direct[k]), rel=1e-5, abs=1e-7), k
 
 
@@ -200,8 +200,8 @@ def test_evaluation_results_carry_routing_diagnostics():
   part = np.asarray([[[1, 0], [0, 1], [1, 0]],  # step 0: three trials (the third one padding)
                      [nan, [0, 1], nan]], np.float32)  # [steps, envs, K]
   d = protocol.routing_diagnostics([part], trials=2)
-  assert d["queries"] == 3 and d["query_entropy"] == pytest.approx(0.0, abs=1e-6)
-  assert d["mean_routing"] == pytest.approx([1 / 3, 2 / 3])
+  assert d["queries"] == 3 and d["routing_entropy_per_query"] == pytest.approx(0.0, abs=1e-6)
+  assert d["mean_weights"] == pytest.approx([1 / 3, 2 / 3])
   assert protocol.routing_diagnostics([np.full((2, 1, k), np.nan, np.float32)], trials=1) == {"queries": 0}
 
   def result(skill):  # a task whose every query picks `skill`
@@ -218,7 +218,7 @@ def test_evaluation_results_carry_routing_diagnostics():
   assert row["seeds"][1]["task_skill_mi"] == pytest.approx(0.0, abs=1e-6)
   mean, se = row["mean"]["task_skill_mi"]
   assert mean == pytest.approx(math.log(2) / 2, rel=1e-5) and se == pytest.approx(math.log(2) / 2, rel=1e-5)
-  assert row["tasks"]["b"]["query_entropy"][0] == pytest.approx(0.0, abs=1e-6)
+  assert row["tasks"]["b"]["routing_entropy_per_query"][0] == pytest.approx(0.0, abs=1e-6)
 
 
 # ---- geometry ----------------------------------------------------------------------

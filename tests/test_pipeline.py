@@ -184,7 +184,7 @@ def test_pipeline_runs_the_protocol_and_writes_routing_arrays(tiny_run):
     queried = ~np.isnan(z["routing"][..., 0])
     assert (queried.sum(axis=1) == z["queries"]).all()  # one row per query, NaN elsewhere
     np.testing.assert_allclose(z["routing"][queried].sum(-1), 1.0, atol=2e-3)  # float16 on disk
-    np.testing.assert_allclose(np.nanmean(z["routing"].reshape(-1, 3), axis=0), r["mean_routing"], atol=2e-3)
+    np.testing.assert_allclose(np.nanmean(z["routing"].reshape(-1, 3), axis=0), r["mean_weights"], atol=2e-3)
   assert all(r["routing_file"] is None for r in pre["results"] if r["policy"] == "ACT")
   few_sp = next(r for r in few["results"] if r["policy"] == "ACT+SkillPlug")
   assert few_sp["trainable"] == ["action_head", "router"] and few_sp["steps"] == 2
@@ -366,7 +366,7 @@ def test_variants_run_in_their_own_folders_and_join_the_reference_rows(tiny_run)
   assert few_rows["-SD"] == "ACT+SkillPlug (loss.sd=0.0)" and few_rows["K=2"] is None  # named beside the few-shot rows
   text = publish.report(summary)
   assert "| -SD | ACT+SkillPlug (loss.sd=0.0, num_skills=3) | 0 |" in text
-  ent = {v["label"]: v["routing_entropy_frac"] for v in summary["variants"]}
+  ent = {v["label"]: v["routing_entropy_per_query"] for v in summary["variants"]}
   assert ent["ACT (reference)"] is None and 0.0 < ent["-SD"] <= 1.0 + 1e-6
   assert 0.0 < ent["ACT+SkillPlug (loss.sd=0.1, num_skills=3) (reference)"] <= 1.0 + 1e-6  # from its published arrays
   publish.publish(summary, text, out / "published")
@@ -402,9 +402,9 @@ def test_routing_statistics_tell_uniform_from_specialised(tmp_path):
                            np.array([2, -1]), (~np.isnan(arr[..., 0])).sum(1))
   u, o = routing.summarise_files(paths)
   assert u["queries"] == 6 and o["queries"] == 6
-  assert u["entropy_frac"] == pytest.approx(1.0, abs=1e-3) and u["within_episode_std"] == pytest.approx(0.0)
-  assert o["entropy"] == pytest.approx(0.0, abs=1e-6) and o["max_weight"] == 1.0
-  assert o["within_episode_std"] > 0.1 and o["entropy_of_mean"] > o["entropy"]
+  assert u["routing_entropy_per_query"] == pytest.approx(1.0, abs=1e-3) and u["within_episode_std"] == pytest.approx(0.0)
+  assert o["routing_entropy_per_query"] == pytest.approx(0.0, abs=1e-6) and o["max_weight"] == 1.0
+  assert o["within_episode_std"] > 0.1 and o["usage_entropy"] > o["routing_entropy_per_query"]
   assert o["mean_weights_success"] == [0, 1, 0, 0] and o["mean_weights_failure"] == [0.5, 0, 0.5, 0]
   d = routing.between_task_distance([u, o])
   # mean weights: uniform 1/4 each; one-hot 6 queries: [1, 4, 1, 0] / 6

@@ -34,7 +34,7 @@ def test_routing_by_phase_and_by_task(tmp_path):
   (run,) = result["runs"]
   a, b = run["tasks"]["a"], run["tasks"]["b"]
   assert a["queries"] == 36 and b["queries"] == 30  # the NaN padding is not a query
-  assert a["query_entropy"] == pytest.approx(0.0, abs=1e-3)
+  assert a["routing_entropy_per_query"] == pytest.approx(0.0, abs=1e-3)
   assert a["within_episode_tv"] == pytest.approx(0.5, abs=1e-3) and b["within_episode_tv"] == pytest.approx(0.0, abs=1e-3)
   # phase quarters 0-1 use skill 0, 2-3 skill 1: one bit of the two-bit phase entropy
   assert a["phase_skill_mi_norm"] == pytest.approx(0.5, abs=1e-3)
@@ -47,7 +47,7 @@ def test_routing_by_phase_and_by_task(tmp_path):
 def test_uniform_routing_reads_as_uniform(tmp_path):
   result = rd.run_diagnostics(_folder(tmp_path, {"a": np.full((3, 9, 4), 0.25), "b": np.full((2, 5, 4), 0.25)}))
   (run,) = result["runs"]
-  assert run["query_entropy"] == pytest.approx(1.0, abs=1e-3) and run["usage_entropy"] == pytest.approx(1.0, abs=1e-3)
+  assert run["routing_entropy_per_query"] == pytest.approx(1.0, abs=1e-3) and run["usage_entropy"] == pytest.approx(1.0, abs=1e-3)
   assert run["task_skill_mi_norm"] == pytest.approx(0.0, abs=1e-3) and run["phase_skill_mi_norm"] == pytest.approx(0.0, abs=1e-3)
 
 

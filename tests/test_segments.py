@@ -5,9 +5,11 @@ import numpy as np
 import pytest
 
 from envs import toy_skills as toy
-from experiments import toy_skills as toy_exp
+from skillplug_jax import experiment
+from skillplug_jax.evaluate import toy_rollout
 from skillplug_jax.data import loader, segments
 from skillplug_jax.train import loop
+from skillplug_jax.train import toy as toy_train
 from skillplug_jax.train.config import TrainConfig, override
 
 OPEN, CLOSED = 0.04, 0.0
@@ -72,8 +74,8 @@ def test_labels_do_not_look_across_episodes():
 
 
 def test_toy_targets_recover_the_toy_primitive_exactly():
-  data = toy_exp.demo_arrays(toy.ToySkillsConfig(), jax.random.PRNGKey(3), toy.SEEN, 4, chunk=8)
-  agreement = toy_exp.mined_label_agreement(data)
+  data = toy_train.demo_arrays(toy.ToySkillsConfig(), jax.random.PRNGKey(3), toy.SEEN, 4, chunk=8)
+  agreement = toy_rollout.label_agreement(data)
   assert agreement == dict(labeller="toy_targets", nmi=pytest.approx(1.0), equal=1.0)
   assert set(np.unique(data["mined"][:, 0])) <= {0, 1, 2}  # every task starts with a reach
 
@@ -100,16 +102,14 @@ def test_batches_carry_the_labels_of_their_rows():
   assert "skill_label" not in loader.ChunkLoader(d, batch_size=6, chunk=4).numpy_batch(0)
   with pytest.raises(ValueError, match="3 skill labels for"):
     loader.ChunkLoader(d, batch_size=6, chunk=4, skill_labels=labels[:3])
-  cfg = toy_exp.toy_train_config()
+  cfg = experiment.get("toy_skills").train
   assert loop.skill_labels(cfg, d) is None
   mined = loop.skill_labels(override(cfg, ["skill_labels=tabletop_phases"]), d)
   assert mined.shape == labels.shape and set(mined) <= {0, 1, 2, 3}
 
 
-def test_the_toy_refuses_a_tabletop_labeller():
-  exp = toy_exp.ToyExperiment(demos_seen=2)
-  cfg = override(exp.train, ["skill_labels=tabletop_phases", "loss.router_label=1", "max_steps=1"])
-  data = toy_exp.demo_arrays(exp.env, jax.random.PRNGKey(0), (0,), 2, chunk=8)
-  params = toy_exp.init_params(cfg.model, jax.random.PRNGKey(0))
+def test_the_toy_refuses_a_tabletop_labeller(tmp_path):
+  cfg = override(experiment.get("toy_skills").train, ["skill_labels=tabletop_phases", "loss.router_label=1",
+                                                      "max_steps=1", "demos=2", f"workdir={tmp_path}"])
   with pytest.raises(ValueError, match="the toy's labeller is 'toy_targets'"):
-    toy_exp.train(cfg, params, data, jax.random.PRNGKey(0), steps_per_call=1, progress=False)
+    toy_train.train(cfg, progress=False)

@@ -381,4 +381,4 @@ def test_plug_geometry_of_a_model_reads_the_inference_path(kw):
   np.testing.assert_allclose(g["cos_signed"], np.einsum("bkd,bjd->bkj", unit, unit).mean(0), rtol=1e-4, atol=1e-5)
   assert float(g["fused_offset_ratio"]) > 0 and np.isfinite(float(g["token_spread"]))
   _, routing = predict(cfg, variables, batch)
-  np.testing.assert_allclose(g["routing"]["mean_routing"], np.asarray(routing).mean(0), rtol=1e-5)
+  np.testing.assert_allclose(g["routing"]["mean_weights"], np.asarray(routing).mean(0), rtol=1e-5)

@@ -1,7 +1,12 @@
-"""The toy skill problem (envs/toy_skills.py) and its driver (experiments/toy_skills.py)."""
+"""The toy skill problem (envs/toy_skills.py), run by the experiment pipeline (its config
+experiments/configs/toy_skills.py, its data skillplug_jax/train/toy.py, its closed loop
+skillplug_jax/evaluate/toy_rollout.py), and the routing statistics (evaluate/routing.py)."""
 
+import dataclasses
 import json
 import math
+import time
+from pathlib import Path
 
 import jax
 import jax.numpy as jnp
@@ -9,8 +14,13 @@ import numpy as np
 import pytest
 
 from envs import toy_skills as toy
-from experiments import toy_skills as driver
+from experiments import pipeline
+from skillplug_jax import experiment, fewshot
+from skillplug_jax.evaluate import routing, toy_rollout
 from skillplug_jax.model.policy import Policy
+from skillplug_jax.train import loop, run_files
+from skillplug_jax.train import toy as toy_train
+from skillplug_jax.train.config import override
 
 CFG = toy.ToySkillsConfig()
 _step = jax.jit(lambda state, action: toy.step(CFG, state, action))
@@ -104,8 +114,18 @@ def test_bounded_step_and_landmark_separation():
   assert np.all(np.linalg.norm(np.asarray(moved.pos - s.pos), axis=-1) <= CFG.max_step + 1e-6)
 
 
+def _config(*overrides):
+  return experiment.get("toy_skills", overrides)
+
+
+TINY_MODEL = ["train.model.hidden=16", "train.model.heads=2", "train.model.ff=32", "train.model.enc_layers=1",
+              "train.model.dec_layers=1", "train.model.plug.skill_latent_dim=4", "train.model.plug.alignment_dim=8"]
+
+
 def test_observation_and_action_shapes_fit_the_model():
-  model = driver.toy_train_config().model
+  cfg = _config().train
+  model = cfg.model
+  assert loop.object_state_dim(cfg) == toy.OBJECT_STATE_DIM and loop.is_toy(cfg)
   s = jax.jit(lambda k: toy.reset_batch(CFG, k, np.arange(toy.NUM_TASKS)))(jax.random.PRNGKey(0))
   obs = jax.jit(jax.vmap(toy.observe))(s)
   assert obs["joint_pos"].shape == (toy.NUM_TASKS, model.joint_dim)
@@ -118,132 +138,213 @@ def test_observation_and_action_shapes_fit_the_model():
   assert (np.asarray(obs["object_state"][:, toy.STAGE_BITS]).argmax(-1) == 0).all()
   assert jax.vmap(toy.expert)(s).shape == (toy.NUM_TASKS, model.action_dim)
   def predict():  # shapes only (eval_shape): nothing is compiled
-    params = driver.init_params(model, jax.random.PRNGKey(0))
+    params = loop.init_params(cfg, jax.random.PRNGKey(0))  # the project's one init, shaped by the taskset
     return Policy(model).apply({"params": params}, obs, method=Policy.predict)
-  pred, routing = jax.eval_shape(predict)
+  pred, r = jax.eval_shape(predict)
   assert pred.shape == (toy.NUM_TASKS, model.chunk, model.action_dim)
-  assert routing.shape == (toy.NUM_TASKS, model.num_skills)
+  assert r.shape == (toy.NUM_TASKS, model.plug.num_skills)
+
+
+def test_toy_tasksets_and_names():
+  assert pipeline.tasks_of(toy.TASKSET) == tuple(toy.task_id(t) for t in toy.SEEN)
+  assert pipeline.tasks_of(toy.FEWSHOT_TASKSET) == ("toy_BA", "toy_ATC", "toy_CBA")
+  from skillplug_jax.evaluate import tables
+  assert tables.abbr("toy_ATC") == "A>T>C"
 
 
 def test_routing_statistics_on_constructed_arrays():
+  """Hand values, through numpy (evaluation summaries, the toy, probes) and through jax (training
+  logs: `diagnostics.routing_stats` under jit): one implementation, one set of names."""
+  from skillplug_jax import diagnostics
   k = 4
-  uniform = driver.routing_stats(np.full((100, k), 1.0 / k))
-  assert uniform["routing_entropy_per_query"] == pytest.approx(1.0)
-  assert uniform["usage_entropy"] == pytest.approx(1.0)
-  assert uniform["effective_skills"] == pytest.approx(k)
-  one_skill = driver.routing_stats(np.tile(np.eye(k)[2], (100, 1)))
-  assert one_skill["routing_entropy_per_query"] == pytest.approx(0.0, abs=1e-6)
-  assert one_skill["effective_skills"] == pytest.approx(1.0, abs=1e-6)
-  library = driver.routing_stats(np.tile(np.eye(k), (25, 1)))  # each query one skill, all used alike
-  assert library["routing_entropy_per_query"] == pytest.approx(0.0, abs=1e-6)
-  assert library["usage_entropy"] == pytest.approx(1.0)
-  assert library["effective_skills"] == pytest.approx(k)
-  two = driver.routing_stats(np.tile([[0.5, 0.5, 0.0, 0.0]], (10, 1)))
-  assert two["routing_entropy_per_query"] == pytest.approx(math.log(2) / math.log(k))
-  assert two["effective_skills"] == pytest.approx(2.0)
+  cases = dict(
+      uniform=(np.full((100, k), 1.0 / k), dict(routing_entropy_per_query=1.0, usage_entropy=1.0, effective_skills=k)),
+      one_skill=(np.tile(np.eye(k)[2], (100, 1)), dict(routing_entropy_per_query=0.0, usage_entropy=0.0,
+                                                        effective_skills=1.0)),
+      library=(np.tile(np.eye(k), (25, 1)), dict(routing_entropy_per_query=0.0, usage_entropy=1.0, effective_skills=k)),
+      two=(np.tile([[0.5, 0.5, 0.0, 0.0]], (10, 1)), dict(routing_entropy_per_query=math.log(2) / math.log(k),
+                                                           usage_entropy=0.5, effective_skills=2.0)))
+  for name, (r, want) in cases.items():
+    got = routing.routing_stats(r)
+    in_jit = jax.jit(diagnostics.routing_stats)(jnp.asarray(r, jnp.float32))
+    assert set(got) == {"routing_entropy_per_query", "usage_entropy", "effective_skills", "mean_weights"}
+    assert got["mean_weights"] == pytest.approx(r.mean(0).tolist())
+    for key, value in want.items():
+      assert got[key] == pytest.approx(value, abs=1e-6), (name, key)
+      assert float(in_jit[key]) == pytest.approx(value, abs=1e-5), (name, key)
+  assert float(routing.entropy(np.array([0.5, 0.5]))) == pytest.approx(math.log(2))
+  assert routing.entropy(jnp.array([0.5, 0.5])).dtype == jnp.float32  # jax in, jax out (jit-safe)
 
 
 def test_nmi():
   rng = np.random.default_rng(0)
   y = rng.integers(0, 4, 20000)
-  assert driver.nmi((y + 1) % 4 * 7, y) == pytest.approx(1.0)  # relabelled one-to-one
-  assert driver.nmi(rng.integers(0, 4, 20000), y) < 0.01
-  assert driver.nmi(np.zeros_like(y), y) == 0.0  # a router that always picks one skill
-  assert 0.0 < driver.nmi(y // 2, y) < 1.0  # a coarser partition
+  assert routing.nmi((y + 1) % 4 * 7, y) == pytest.approx(1.0)  # relabelled one-to-one
+  assert routing.nmi(rng.integers(0, 4, 20000), y) < 0.01
+  assert routing.nmi(np.zeros_like(y), y) == 0.0  # a router that always picks one skill
+  assert 0.0 < routing.nmi(y // 2, y) < 1.0  # a coarser partition
 
 
 def test_probe_classes():
   out = dict(landmarks=np.array([[[0.0, 0.0], [0.5, 0.5], [-0.5, 0.5]]] * 3),
              final_pos=np.array([[0.49, 0.5], [0.9, -0.9], [0.9, -0.9]]), toggled=np.array([True, True, False]))
-  assert driver.probe_classes(out, 0.15).tolist() == [1, 3, 4]
+  assert toy_rollout.probe_classes(out, 0.15).tolist() == [1, 3, 4]
 
 
-def test_a_setting_that_does_not_exist_is_an_error_naming_the_variant():
+def test_old_summaries_read_with_todays_names():
+  """Published summaries keep the names they were written with; one mapping reads them."""
+  root = Path(__file__).resolve().parents[1] / "docs" / "results"
+  for name in ("skill_library_image/2026-12-06_phases_w01_seed0/summary.json",
+               "skill_library_image/2026-12-06_phases_w01_seed0/routing_diagnostics.json"):
+    old_text = (root / name).read_text()
+    assert "query_entropy" in old_text and "mean_routing" in old_text  # written before today's names
+    text = json.dumps(routing.renamed(json.loads(old_text)))
+    for gone in ("query_entropy", "mean_routing", "routing_entropy_frac", "entropy_frac"):
+      assert f'"{gone}"' not in text, (name, gone)
+    assert text.count('"routing_entropy_per_query"') >= old_text.count('"query_entropy"')
+  new = routing.renamed(json.loads((root / "skill_library_image/2026-12-06_phases_w01_seed0/summary.json").read_text()))
+  diag = next(iter(new["pretrain"]["diagnostics"].values()))["mean"]
+  assert set(diag) >= {"routing_entropy_per_query", "usage_entropy", "effective_skills"}
+  first = next(r for r in new["pretrain"]["results"] if r.get("diagnostics"))
+  assert "mean_weights" in first and "routing_entropy_per_query" in first["diagnostics"]
+  # as a reference (rows read, not run), an old summary's results tabulate with today's diagnostics
+  from experiments import publish
+  from skillplug_jax.evaluate import tables
+  ref = publish.reference_results(str(root / "skill_library_image/2026-12-06_phases_w01_seed0/summary.json"), "pretrain")
+  tabled = tables.summarise(ref, sorted({r["task"] for r in ref}))
+  assert all("routing_entropy_per_query" in d["mean"] for d in tabled["diagnostics"].values())
+  toy_old = json.loads((root / "toy_skills" / "2026-12-03_v2_screen_seed0" / "summary.json").read_text())
+  toy_new = routing.renamed(toy_old)  # the toy's summaries already used these names
+  assert toy_new["variants"]["skillplug_paper"]["routing_entropy_per_query"] == \
+      toy_old["variants"]["skillplug_paper"]["routing_entropy_per_query"]
+  # an old routing summary's nats, as fractions of log K
+  r = routing.renamed(dict(entropy=math.log(2), entropy_frac=0.5, entropy_of_mean=math.log(4),
+                           mean_weights=[0.25] * 4))
+  assert r == dict(routing_entropy_per_query=0.5, usage_entropy=pytest.approx(1.0), mean_weights=[0.25] * 4)
+
+
+def test_variants_and_settings_that_do_not_exist_are_named():
+  exp = _config()
+  assert {"paper", "oracle", "oracle_cue_per_object_router_unlabelled", "mined", "decoder", "per_object"} <= \
+      {v.name for v in exp.variants}
+  assert not {"posterior", "top1", "top1_only", "load_balance", "router_z", "decoder_top1", "cue_top1",
+              "cue_top1_router", "cue_per_object_top1"} & {v.name for v in exp.variants}
+  with pytest.raises(ValueError, match=r"unknown variant\(s\) \['nope'\] of config 'toy_skills'"):
+    experiment.only(exp, "paper,nope", "toy_skills")
+  bad = dataclasses.replace(exp, variants=(experiment.Variant("x", ("train.model.no_such_field=1",)),))
   with pytest.raises(ValueError, match="'x'.*no_such_field"):
-    driver.variant_config(driver.ToyExperiment(), driver.ToyVariant("x", ("model.no_such_field=1",)))
-  exp = driver.apply_settings(driver.ToyExperiment(), ["fewshot_steps=7", "model.num_skills=3", "loss.sd=0.5"])
-  assert exp.fewshot_steps == 7 and exp.train.model.num_skills == 3 and exp.train.loss.sd == 0.5
+    experiment.expand(bad)
+  assert pipeline.main(["--config", "toy_skills", "--variants", "nope", "--out", "/nonexistent"]) == 2
 
 
-def test_driver_writes_the_summary(tmp_path):
-  tiny = ["demos_seen=3", "demos_unseen=2", "eval_trials=2", "probe_trials=1", "fewshot_steps=2",
-          "steps_per_call=1", "model.hidden=16", "model.heads=2", "model.ff=32", "model.enc_layers=1",
-          "model.dec_layers=1", "model.skill_latent_dim=4", "model.alignment_dim=8"]
-  argv = ["--out", str(tmp_path), "--variants", "skillplug_paper", "--steps", "2", "--no-progress"]
+def test_fewshot_overrides_change_the_fine_tune_alone(tmp_path):
+  arms = {v.name: arm for v, arm in experiment.expand(_config())}
+  for name, label_weight in (("oracle_cue_per_object_router", 1.0), ("oracle_cue_per_object_router_unlabelled", 0.0)):
+    arm = arms[name]
+    cfg = arm.train_config("skillplug", 0)
+    assert cfg.loss.router_label == 1.0  # pretraining is told the primitive in both
+    few = fewshot.fewshot_config(cfg, tmp_path / "run", "toy_BA", arm.fewshot)
+    assert few.loss.router_label == label_weight and few.trainable == ("router",)
+    assert few.max_steps == arm.fewshot.steps == 300 and few.model == cfg.model
+    assert few.taskset == "toy_BA" and few.data_taskset == toy.FEWSHOT_TASKSET and few.demos == 10
+  # recorded like the rest of the protocol, so a run is adapted later as it was trained
+  rec = experiment.record(arms["oracle_cue_per_object_router_unlabelled"], "skillplug")
+  back = experiment.record_from_dict(json.loads(json.dumps(experiment.record_to_dict(rec))))
+  assert back.fewshot.train_overrides == ("loss.router_label=0",) and back == rec
+  assert experiment.FewShot().train_overrides == ()  # other configs: unchanged
+
+
+def test_toy_demonstrations_for_the_pipeline():
+  cfg = override(_config().train, ["demos=3"])
+  seen = toy_train.data_of(cfg)
+  assert seen["joint_pos"].shape[0] == 3 * len(toy.SEEN) and set(seen["task"]) == set(toy.SEEN)
+  few = dataclasses.replace(cfg, taskset="toy_ATC", data_taskset=toy.FEWSHOT_TASKSET, demos=2)
+  data = toy_train.data_of(few)
+  assert data["joint_pos"].shape[0] == 2 and set(data["task"]) == {toy.TASK_IDS["toy_ATC"]}
+  batch = toy_train.sample_batch({k: jnp.asarray(v) for k, v in seen.items()}, jax.random.PRNGKey(1), 32,
+                                 cfg.model.chunk)
+  like = loop.example_batch(cfg, 32)
+  assert {k: v.shape for k, v in like.items()} == {k: batch[k].shape for k in like}
+
+
+@pytest.mark.slow
+def test_the_pipeline_runs_the_toy(tmp_path):
+  """The toy through the pipeline at a tiny size: a run directory with the record, the tables of
+  any config (toy tasks as columns), the toy's extras and report section; the same command
+  again reads the evaluations back; other evaluation settings recompute them."""
+  tiny = TINY_MODEL + ["train.demos=3", "fewshot.demos=2", "trials=2", "fewshot.steps=2", "train.max_steps=2",
+                       "train.log_every=1", "train.warmup_steps=0"]
+  argv = ["--config", "toy_skills", "--variants", "paper", "--out", str(tmp_path)]
   for s in tiny:
     argv += ["--set", s]
-  assert driver.main(argv) == 0
+  t0 = time.time()
+  assert pipeline.main(argv) == 0
+  wall = time.time() - t0
   summary = json.loads((tmp_path / "summary.json").read_text())
-  v = summary["variants"]["skillplug_paper"]
-  assert v["status"] == "ok"
-  for key in ("multitask_success", "fewshot_success", "routing_entropy_per_query", "usage_entropy",
-              "effective_skills", "nmi", "fixed_skill_probe"):
-    assert v[key] is not None, key
-  assert set(v["multitask_success"]["per_task"]) == {toy.task_name(t) for t in toy.SEEN}
-  assert set(v["fewshot_success"]["per_task"]) == {toy.task_name(t) for t in toy.UNSEEN}
-  assert 0.0 <= v["routing_entropy_per_query"]["mean"] <= 1.0 + 1e-6
-  assert 1.0 - 1e-6 <= v["effective_skills"]["mean"] <= 4.0 + 1e-6
-  assert len(v["per_seed"][0]["fixed_skill_probe"]["skills"]) == 4
-  assert (tmp_path / "summary.md").exists()
+  assert set(summary["pretrain"]["rows"]) == {"ACT", "ACT+SkillPlug"}
+  assert summary["pretrain"]["table"]["abbr"] == [toy.task_name(t) for t in toy.SEEN]
+  assert summary["fewshot"]["table"]["tasks"] == ["toy_BA", "toy_ATC", "toy_CBA"]
+  plug = [r for r in summary["pretrain"]["results"] if r["policy"] == "ACT+SkillPlug"]
+  assert len(plug) == len(toy.SEEN) and all(Path(r["routing_file"]).exists() for r in plug)
+  for r in plug:
+    assert 0.0 <= r["stage_progress"] <= 1.0 and r["variant"] == "paper"
+    assert set(r["toy_routing"]) >= {"routing_entropy_per_query", "usage_entropy", "effective_skills", "nmi"}
+  assert summary["pretrain"]["diagnostics"]["ACT+SkillPlug"]["mean"]["routing_entropy_per_query"] is not None
+  assert all("trainable" in r for r in summary["fewshot"]["results"])
+  toy_rows = summary["toy"]["rows"]
+  assert toy_rows["ACT"]["routing"] is None and toy_rows["ACT"]["fixed_skill_probe"] is None
+  plug_row = toy_rows["ACT+SkillPlug"]
+  assert 0.0 <= plug_row["routing"]["routing_entropy_per_query"][0] <= 1.0 + 1e-6
+  assert 1.0 - 1e-6 <= plug_row["routing"]["effective_skills"][0] <= 4.0 + 1e-6
+  assert plug_row["routing"]["nmi_task"] is not None and plug_row["fewshot_progress"] is not None
+  assert len(plug_row["fixed_skill_probe"]["per_seed"][0]) == 4
+  assert summary["toy"]["mined_labels"]["labeller"] == "toy_targets"
+  assert summary["variants"][0]["routing_entropy_per_query"] is not None
+  text = (tmp_path / "summary.md").read_text()
+  assert "Toy problem" in text and "A>T>B" in text
+  # the run directory: the config, the record (few-shot reads its protocol from it), the checkpoint
+  run = Path(summary["runs"][0])
+  rec = experiment.read_record(run)
+  assert rec.config == "toy_skills" and rec.fewshot.taskset == toy.FEWSHOT_TASKSET
+  assert run_files.read_config(run).max_steps == 2 and (run / "metrics.jsonl").exists()
+  assert "diag/routing_entropy_per_query" in (run / "metrics.jsonl").read_text()
 
-  # the same command again keeps the finished variant (resumes); other settings recompute it
-  summary["variants"]["skillplug_paper"]["marker"] = 1
-  (tmp_path / "summary.json").write_text(json.dumps(summary))
-  assert driver.main(argv) == 0
-  assert json.loads((tmp_path / "summary.json").read_text())["variants"]["skillplug_paper"]["marker"] == 1
-  assert driver.main(argv + ["--set", "eval_seed=7"]) == 0
-  assert "marker" not in json.loads((tmp_path / "summary.json").read_text())["variants"]["skillplug_paper"]
-
-  # --combine: two runs' variants in one summary; runs with other settings are refused
-  other = tmp_path / "other"
-  other.mkdir()
-  summary = json.loads((tmp_path / "summary.json").read_text())
-  summary["variants"] = {"act": dict(summary["variants"]["skillplug_paper"], label="renamed")}
-  (other / "summary.json").write_text(json.dumps(summary))
-  assert driver.main(["--combine", f"{tmp_path},{other}", "--out", str(tmp_path / "both")]) == 0
-  both = json.loads((tmp_path / "both" / "summary.json").read_text())
-  assert list(both["variants"]) == ["act", "skillplug_paper"] and both["sources"] == [str(tmp_path), str(other)]
-  assert "renamed" in (tmp_path / "both" / "summary.md").read_text()
-  summary["config"]["eval_seed"] = 1
-  (other / "summary.json").write_text(json.dumps(summary))
-  with pytest.raises(ValueError, match="eval_seed"):
-    driver.main(["--combine", f"{tmp_path},{other}", "--out", str(tmp_path / "both2")])
+  # the same command again reads every evaluation back (a marker planted in one survives)
+  evals = sorted((run / "eval").glob(f"{toy.TASKSET}_trials2_seed1000.json"))
+  assert evals
+  stored = json.loads(evals[0].read_text())
+  stored["results"][0]["marker"] = 1
+  evals[0].write_text(json.dumps(stored))
+  assert pipeline.main(argv) == 0
+  again = json.loads((tmp_path / "summary.json").read_text())
+  assert any(r.get("marker") == 1 for r in again["pretrain"]["results"])
+  assert pipeline.main(argv + ["--set", "eval_seed=7"]) == 0
+  other = json.loads((tmp_path / "summary.json").read_text())
+  assert not any(r.get("marker") for r in other["pretrain"]["results"])
+  print(f"tiny toy pipeline: {wall:.0f} s")
 
 
-def test_oracle_variant_routes_by_the_primitive_the_batches_carry():
+@pytest.mark.slow
+def test_oracle_variant_routes_by_the_primitive_the_batches_carry(tmp_path):
   """The oracle diagnostic: batches carry each step's primitive and the router_label term
   teaches the router to choose skill = primitive, which the paper's loss never does."""
-  exp = driver.apply_settings(driver.ToyExperiment(), [
-      "model.hidden=32", "model.heads=2", "model.ff=64", "model.enc_layers=1", "model.dec_layers=1",
-      "model.skill_latent_dim=4", "model.alignment_dim=8", "train.max_steps=300", "train.warmup_steps=20"])
-  data = driver.demo_arrays(exp.env, jax.random.PRNGKey(0), toy.SEEN, 20, exp.train.model.chunk)
-  batch = driver.sample_batch({k: jnp.asarray(v) for k, v in data.items()}, jax.random.PRNGKey(1), 256,
-                              exp.train.model.chunk)
+  small = ["train.model.hidden=32", "train.model.heads=2", "train.model.ff=64", "train.model.enc_layers=1",
+           "train.model.dec_layers=1", "train.model.plug.skill_latent_dim=4", "train.model.plug.alignment_dim=8",
+           "train.max_steps=300", "train.warmup_steps=20", "train.demos=20"]
+  arms = {v.name: arm for v, arm in experiment.expand(_config(*small))}
+  data = toy_train.data_of(arms["paper"].train)
+  batch = toy_train.sample_batch({k: jnp.asarray(v) for k, v in data.items()}, jax.random.PRNGKey(1), 256,
+                                 arms["paper"].train.model.chunk)
   assert batch["skill_label"].shape == (256,) and set(np.unique(batch["skill_label"])) <= set(range(4))
-
-  def accuracy(name, params):
-    cfg = driver.variant_config(exp, next(v for v in driver.VARIANTS if v.name == name))
-    out = Policy(cfg.model).apply({"params": params}, batch, train=False)
-    return float(jnp.mean(out["router_probs"].argmax(-1) == batch["skill_label"]))
-
   accs = {}
-  for name in ("oracle", "skillplug_paper"):
-    cfg = driver.variant_config(exp, next(v for v in driver.VARIANTS if v.name == name))
-    params, metrics = driver.train(cfg, driver.init_params(cfg.model, jax.random.PRNGKey(0)), data,
-                                   jax.random.PRNGKey(2), steps_per_call=100, progress=False)
-    assert ("router_label" in metrics) == (name == "oracle")
-    accs[name] = accuracy(name, params)
+  for name in ("oracle", "paper"):
+    cfg = dataclasses.replace(arms[name].train_config("skillplug", 0), workdir=str(tmp_path / name))
+    run = toy_train.train(cfg, progress=False)
+    rows = [json.loads(line) for line in (run / "metrics.jsonl").read_text().splitlines()]
+    assert ("loss/router_label" in rows[-1]) == (name == "oracle")
+    _, params, step = loop.load_params(run)
+    assert step == 300
+    out = Policy(cfg.model).apply({"params": params}, batch, train=False)
+    accs[name] = float(jnp.mean(out["router_probs"].argmax(-1) == batch["skill_label"]))
   assert accs["oracle"] > 0.8, accs
-  assert accs["skillplug_paper"] < 0.6, accs  # reconstruction alone does not find that partition
-
-
-def test_fewshot_overrides_change_the_fine_tune_alone():
-  exp = driver.ToyExperiment()
-  by_name = {v.name: v for v in driver.VARIANTS}
-  for name, label_weight in (("oracle_cue_per_object_router", 1.0), ("oracle_cue_per_object_router_unlabelled", 0.0)):
-    variant = by_name[name]
-    cfg = driver.variant_config(exp, variant)
-    assert cfg.loss.router_label == 1.0  # pretraining is told the primitive in both
-    few = driver.fewshot_config(exp, cfg, variant)
-    assert few.loss.router_label == label_weight and few.trainable == ("router",)
-    assert few.max_steps == exp.fewshot_steps and few.model == cfg.model
+  assert accs["paper"] < 0.6, accs  # reconstruction alone does not find that partition

@@ -64,7 +64,7 @@ def test_resume_equals_straight_run(data_dir, tmp_path):
   rows = read_metrics(cfg.run_dir)
   assert [r["step"] for r in rows] == [2, 3, 4, 6]
   assert {"loss/rec", "loss/kl", "loss/bsa", "loss/sd", "loss/cvae_kl", "loss/loss"} <= set(rows[0])
-  assert {"diag/usage_entropy", "diag/query_entropy", "diag/effective_skills", "diag/task_skill_mi"} <= set(rows[0])
+  assert {"diag/usage_entropy", "diag/routing_entropy_per_query", "diag/effective_skills", "diag/task_skill_mi"} <= set(rows[0])
   assert not any(k.startswith("loss/diag") for k in rows[0])  # diagnostics are not loss terms
   assert any(name.startswith("events.out.tfevents") for name in os.listdir(cfg.run_dir / "tensorboard"))
 

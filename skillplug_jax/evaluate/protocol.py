@@ -107,7 +107,7 @@ def evaluate_task(task: str, controller: Controller, trials: int, seed: int = EV
               nan_episodes=int(nan.sum()), solver_limit_episodes=solver_limit_counts(overflow),
               mean_queries_success=float(queries[success].mean()) if success.any() else None,
               mean_steps_success=float(take("first_success_step")[success].mean()) if success.any() else None,
-              mean_routing=(np.nanmean(np.concatenate([r.reshape(-1, r.shape[-1]) for r in routing]), axis=0)
+              mean_weights=(np.nanmean(np.concatenate([r.reshape(-1, r.shape[-1]) for r in routing]), axis=0)
                             .tolist() if routing else None),
               trial_success=success.tolist(), trial_queries=queries.tolist(),
               trial_success_step=take("first_success_step").tolist(),

@@ -36,9 +36,17 @@ def mean_se(values: Sequence[float]) -> tuple[float, float | None]:
   return mean, math.sqrt(var / n)
 
 
+def abbr(task: str) -> str:
+  """A task's column heading: its abbreviation (the toy's tasks: their primitive sequence, A>T>B)."""
+  from envs import toy_skills
+  if task in toy_skills.TASK_IDS:
+    return toy_skills.task_name(toy_skills.TASK_IDS[task])
+  return envs.task_class(task).abbr
+
+
 def success_table(rates: Mapping[str, Mapping[str, Sequence[float]]], tasks: Sequence[str]) -> dict:
   """rates[policy][task] = success rate (0-1) of each training seed, seeds in the same order."""
-  table = {"tasks": list(tasks), "abbr": [envs.task_class(t).abbr for t in tasks], "rows": {}}
+  table = {"tasks": list(tasks), "abbr": [abbr(t) for t in tasks], "rows": {}}
   for policy, per_task in rates.items():
     seeds = {len(per_task[t]) for t in tasks}
     if len(seeds) != 1:
@@ -80,7 +88,7 @@ def queries_table(episodes: Mapping[str, Mapping[str, Sequence[tuple[Sequence[bo
   seed of every row) solved it, so all runs are averaged over the same
   initial states; `paired_trials[task]` says how many there are.
   """
-  table = {"tasks": list(tasks), "abbr": [envs.task_class(t).abbr for t in tasks], "rows": {},
+  table = {"tasks": list(tasks), "abbr": [abbr(t) for t in tasks], "rows": {},
            "paired": paired}
   shared = {}
   if paired:
@@ -142,7 +150,7 @@ def summarise(results: Sequence[Mapping[str, Any]], tasks: Sequence[str]) -> dic
   return out
 
 
-DIAGNOSTICS = ("usage_entropy", "query_entropy", "effective_skills")
+DIAGNOSTICS = ("usage_entropy", "routing_entropy_per_query", "effective_skills")  # evaluate/routing.py
 
 
 def routing_diagnostics(results: Mapping[str, Mapping[Any, Sequence[Mapping[str, Any]]]],

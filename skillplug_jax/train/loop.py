@@ -92,10 +92,24 @@ def optimizer(cfg: TrainConfig, params, total_steps: int) -> optax.GradientTrans
   return tx
 
 
+def is_toy(cfg: TrainConfig) -> bool:
+  """Whether `cfg` trains on the toy problem (envs/toy_skills.py: its demonstrations are made in
+  memory, `train.toy`) rather than on a tabletop dataset."""
+  from envs import toy_skills
+  return (cfg.data_taskset or cfg.taskset) in toy_skills.TASKSETS or cfg.taskset in toy_skills.TASK_IDS
+
+
+def object_state_dim(cfg: TrainConfig) -> int:
+  """The width of `cfg`'s object_state: the toy's, or the tabletop tasks' (envs.OBJECT_STATE_DIM)."""
+  from envs import toy_skills
+  return toy_skills.OBJECT_STATE_DIM if is_toy(cfg) else envs.OBJECT_STATE_DIM
+
+
 def example_batch(cfg: TrainConfig, batch_size: int) -> dict:
+  """A batch of zeros shaped like `cfg`'s (the observation shapes follow its taskset)."""
   m = cfg.model
   b = {"joint_pos": jnp.zeros((batch_size, m.joint_dim)),
-       "object_state": jnp.zeros((batch_size, envs.OBJECT_STATE_DIM)),
+       "object_state": jnp.zeros((batch_size, object_state_dim(cfg))),
        "actions": jnp.zeros((batch_size, m.chunk, m.action_dim)),
        "action_mask": jnp.ones((batch_size, m.chunk), bool),
        "task_id": jnp.zeros((batch_size,), jnp.int32)}

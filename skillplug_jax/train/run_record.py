@@ -43,7 +43,7 @@ _FEWSHOT_RULES = dict(taskset=validation.text(), demos=validation.count(1),
                       steps=validation.count(0, " (0: the source run's own `epochs`)"),
                       trainable=validation.Rule(lambda v: isinstance(v, Trainable),
                                                 "a Trainable (groups per policy: Trainable(act=..., skillplug=...))"),
-                      marginal_terms=validation.flag())
+                      marginal_terms=validation.flag(), train_overrides=validation.each(validation.text()))
 
 
 @dataclasses.dataclass(frozen=True)
@@ -58,10 +58,13 @@ class FewShot:
   demos: int = 10  # demonstrations per unseen task
   steps: int = 500  # fine-tuning steps per task; 0: the source run's own `epochs`
   trainable: Trainable = Trainable()
-  # Ours (issue 27): whether the fine-tune keeps the source's terms on the batch's mean routing
-  # (loss.usage, loss.load_balance). They ask a batch to spread over the skills, which suits
-  # pretraining's batch of many tasks; a few-shot batch holds one task. False: both weigh 0.
+  # Ours (issue 27): whether the fine-tune keeps the source's term on the batch's mean routing
+  # (loss.usage). It asks a batch to spread over the skills, which suits pretraining's batch of
+  # many tasks; a few-shot batch holds one task. False: it weighs 0.
   marginal_terms: bool = True
+  # TrainConfig overrides (train/config.py syntax, `loss.router_label=0`) of the fine-tune alone,
+  # applied after the rest of this protocol (`fewshot.fewshot_config`); pretraining keeps its own.
+  train_overrides: tuple[str, ...] = ()
 
   def __post_init__(self):
     validation.check(self, "fewshot.", _FEWSHOT_RULES)
