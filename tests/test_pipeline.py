@@ -13,6 +13,7 @@ import pytest
 from experiments import pipeline, publish
 from skillplug_jax import experiment, fewshot
 from skillplug_jax.evaluate import groups, protocol
+from skillplug_jax.model.policy import Policy
 from skillplug_jax.train import config as train_config
 from skillplug_jax.train import loop, run_files
 
@@ -417,14 +418,28 @@ def test_skill_probes_replace_the_routing_and_measure_the_skills(tiny_run, capsy
     own.with_suffix(".aside").rename(own)
   assert again["router"][sp[0]["task"]]["trial_success"] == sp[0]["trial_success"]
   g = probe["geometry"]
-  assert np.allclose(np.diag(g["skill_cosine"]), 1.0, atol=1e-4)
+  # the geometry against the same quantities recomputed here, in numpy, from the run's weights and
+  # the probes' demonstration states
+  cfg, params, _ = loop.load_params(run)
+  policy = Policy(cfg.model)
+  unit = lambda x: x / np.linalg.norm(x, axis=-1, keepdims=True)  # noqa: E731
+  emb = unit(np.asarray(policy.apply({"params": params}, method=lambda mod: mod.skills())))
+  np.testing.assert_allclose(g["skill_cosine"], emb @ emb.T, atol=1e-4)
+  states = skill_probes.demo_states(run, list(g["tasks"]))
+  chosen = []
   for task, row in g["tasks"].items():
-    assert np.allclose(np.diag(row["interactor_cosine"]), 1.0, atol=1e-4) and row["states"] == 8  # 2 demos x 4
+    obs = {k: v for k, v in states[task].items() if k != "mined_phase"}
+    f = policy.apply({"params": params}, obs, method=Policy.features)
+    um = unit(np.asarray(f["skill_tokens"]).mean(axis=2))  # [B, K, D], token-averaged u_k
+    np.testing.assert_allclose(row["interactor_cosine"], np.einsum("bkd,bld->kl", um, um) / len(um), atol=1e-4)
+    assert row["states"] == len(um) == 8  # 2 demos x 4
     assert 0.0 < row["cka_fused_vs_act"] <= 1.0 + 1e-6 and row["interactor_spread"] >= 0.0
-    assert sum(row["router_mean"]) == pytest.approx(1.0, abs=1e-5)
+    np.testing.assert_allclose(row["router_mean"], np.asarray(f["routing"]).mean(0), atol=1e-5)
+    chosen.append(np.asarray(f["routing"]).argmax(-1))
   # every demonstration state counted once under its mined phase and the skill the router chose
   counts = np.asarray(g["phase_skill_counts"])
   assert counts.shape == (4, 3) and counts.sum() == sum(row["states"] for row in g["tasks"].values())
+  np.testing.assert_array_equal(counts.sum(0), np.bincount(np.concatenate(chosen), minlength=3))
   assert 0.0 <= g["phase_skill_nmi"] <= 1.0
   assert "| uniform |" in capsys.readouterr().out
   # mixed-skill rollouts: each pair half and half, only the modes asked for
