@@ -33,7 +33,7 @@ def benv():
   return envs.make(TASK, num_envs=3, backend="mujoco")
 
 
-@pytest.mark.parametrize("backend", ["mujoco", "mjx-warp"])
+@pytest.mark.parametrize("backend", ["mujoco", pytest.param("mjx-warp", marks=pytest.mark.slow)])
 def test_engine_records_what_it_runs_on_both_backends(backend):
   """The engine's two loops (jitted while_loop on MJX-Warp, host loop on the C
   engine) count steps and queries alike, and a recorded run is the same run."""
@@ -71,6 +71,7 @@ def test_nan_episode_fails_alone(benv):
   np.testing.assert_array_equal(got.first_success_step[1:], ref.first_success_step[1:])
 
 
+@pytest.mark.slow
 def test_two_devices_match_one_and_videos_follow_episodes(tmp_path):
   """The batch split over 2 (host) devices gives the same episodes as one
   device running it all; side-camera frames follow each episode to its end."""

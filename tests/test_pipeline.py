@@ -145,6 +145,7 @@ def tiny_run(tmp_path_factory):
   return exp, out, summary
 
 
+@pytest.mark.slow
 def test_pipeline_runs_the_protocol_and_writes_routing_arrays(tiny_run):
   _, out, summary = tiny_run
   pre, few = summary["pretrain"], summary["fewshot"]
@@ -178,6 +179,7 @@ def test_pipeline_runs_the_protocol_and_writes_routing_arrays(tiny_run):
   assert published["pretrain"]["table"] == json.loads(json.dumps(pre["table"]))  # tuples as JSON lists
 
 
+@pytest.mark.slow
 def test_pipeline_resumes_without_training_or_evaluating_again(tiny_run, monkeypatch):
   exp, out, summary = tiny_run
   monkeypatch.setattr(protocol, "evaluate_task", lambda *a, **k: pytest.fail("evaluated again"))
@@ -211,6 +213,7 @@ def _rows_of(run: Path) -> dict:
   return groups.group_rows([groups.row_fields(c, record) for c in (cfg, other)])
 
 
+@pytest.mark.slow
 def test_a_run_records_its_fewshot_protocol_and_overrides(tiny_run):
   _, _, summary = tiny_run
   run = _skillplug_run(summary)
@@ -231,6 +234,7 @@ def test_a_run_records_its_fewshot_protocol_and_overrides(tiny_run):
   assert run_files.stored_record(few_run) == run_files.stored_record(run)
 
 
+@pytest.mark.slow
 def test_editing_the_config_afterwards_changes_neither_row_nor_fewshot(tiny_run, tmp_path, monkeypatch):
   run = _skillplug_run(tiny_run[2])
   before = _rows_of(run)
@@ -251,6 +255,7 @@ def test_editing_the_config_afterwards_changes_neither_row_nor_fewshot(tiny_run,
   assert _rows_of(run) == before and run_files.read_record(run).fewshot == plan
 
 
+@pytest.mark.slow
 def test_a_run_or_result_without_a_record_falls_back_to_todays_config(tiny_run, tmp_path, monkeypatch, capsys):
   run = _skillplug_run(tiny_run[2])
   saved = json.loads((run / "config.json").read_text())
@@ -285,6 +290,7 @@ def test_published_summaries_from_before_the_record_still_tabulate(capsys):
 
 @pytest.mark.parametrize("name", ["success_tables.ipynb", "routing.ipynb", "skill_similarity.ipynb",
                                   "fixed_skills.ipynb"])
+@pytest.mark.slow
 def test_notebooks_execute_on_a_published_run(tiny_run, name, monkeypatch, tmp_path):
   """The committed notebooks run top to bottom on a (smoke-size) published pipeline run and draw;
   `--into` writes them elsewhere and leaves the committed notebook as it is."""
@@ -313,6 +319,7 @@ def test_notebooks_execute_on_a_published_run(tiny_run, name, monkeypatch, tmp_p
   assert "config 'quick'" in printed
 
 
+@pytest.mark.slow
 def test_variants_run_in_their_own_folders_and_join_the_reference_rows(tiny_run):
   """An ablation-style config: each variant's runs under OUT/<name>, datasets shared, its row
   named by what it changed, read beside the rows of a published reference summary."""
@@ -395,6 +402,7 @@ def test_linear_cka_is_one_for_rotations_and_low_for_unrelated_features():
   assert linear_cka(x, rng.normal(size=(200, 5))) < 0.2
 
 
+@pytest.mark.slow
 def test_skill_probes_replace_the_routing_and_measure_the_skills(tiny_run, capsys):
   from experiments import skill_probes
   _, out, summary = tiny_run

@@ -106,6 +106,7 @@ def test_batches_carry_the_labels_of_their_rows():
   assert mined.shape == labels.shape and set(mined) <= {0, 1, 2, 3}
 
 
+@pytest.mark.slow
 def test_the_toy_refuses_a_tabletop_labeller():
   exp = toy_exp.ToyExperiment(demos_seen=2)
   cfg = override(exp.train, ["skill_labels=tabletop_phases", "loss.router_label=1", "max_steps=1"])

@@ -165,6 +165,7 @@ def test_a_setting_that_does_not_exist_is_an_error_naming_the_variant():
   assert exp.fewshot_steps == 7 and exp.train.model.num_skills == 3 and exp.train.loss.sd == 0.5
 
 
+@pytest.mark.slow
 def test_driver_writes_the_summary(tmp_path):
   tiny = ["demos_seen=3", "demos_unseen=2", "eval_trials=2", "probe_trials=1", "fewshot_steps=2",
           "steps_per_call=1", "model.hidden=16", "model.heads=2", "model.ff=32", "model.enc_layers=1",
@@ -210,6 +211,7 @@ def test_driver_writes_the_summary(tmp_path):
     driver.main(["--combine", f"{tmp_path},{other}", "--out", str(tmp_path / "both2")])
 
 
+@pytest.mark.slow
 def test_oracle_variant_routes_by_the_primitive_the_batches_carry():
   """The oracle diagnostic: batches carry each step's primitive and the router_label term
   teaches the router to choose skill = primitive, which the paper's loss never does."""
