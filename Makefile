@@ -21,7 +21,7 @@ export MUJOCO_GL ?= egl
 # contention doubled the quick preset's step.) docs/measurements/speed.md.
 export GLIBC_TUNABLES ?= glibc.malloc.hugetlb=1
 
-.PHONY: install test quickstart toy-skills paper-cpu paper-cpu-image loss-ablation k-sweep notebooks experts demos pretrain fewshot eval bench-envs bench-loader bench-train bench-eval bench-eval-scale bench soak scenes clean
+.PHONY: install test test-fast quickstart toy-skills paper-cpu paper-cpu-image loss-ablation k-sweep notebooks experts demos pretrain fewshot eval bench-envs bench-loader bench-train bench-eval bench-eval-scale bench soak scenes clean
 
 install: $(VENV)/.installed
 
@@ -35,6 +35,10 @@ $(VENV)/.installed: pyproject.toml
 # fixtures (datasets, trained runs) and compiled programs are made once.
 test: install
 	$(PY) -m pytest -q -n 2 --dist loadfile tests
+
+# The inner loop: the same, less the tests marked slow (subprocesses, training, simulated devices).
+test-fast: install
+	$(PY) -m pytest -q -n 2 --dist loadfile -m "not slow" tests
 
 # The main job on a CPU: demos, quick pretraining of ACT and ACT+SkillPlug,
 # closed-loop evaluation, few-shot adaptation, success tables (experiments/quickstart.py).

@@ -114,6 +114,7 @@ def test_a_trial_looks_the_same_at_any_batch_size():
   assert len({tuple(np.round(rgba[i, table], 4)) for i in range(4)}) == 4  # every trial its own table
 
 
+@pytest.mark.slow
 def test_the_physics_is_the_same_with_and_without_the_shift():
   """Same actions, same states, bit for bit; the expert's evaluation (paired trials)
   has the same outcomes, and the result records the appearance."""
@@ -146,6 +147,7 @@ def test_the_physics_is_the_same_with_and_without_the_shift():
     assert out["default"][k] == out["shifted"][k], k
 
 
+@pytest.mark.slow
 def test_shifted_on_mjx_warp_batches_the_looks_through_warps_renderer():
   """MJX-Warp's ray caster takes the looks as per-world model fields: the same physics,
   other pixels, and trial i drawn alike at two batch sizes."""
@@ -163,6 +165,7 @@ def test_shifted_on_mjx_warp_batches_the_looks_through_warps_renderer():
     np.testing.assert_array_equal(ib[cam][2:], ic[cam], err_msg=cam)
 
 
+@pytest.mark.slow
 def test_looks_keep_the_task_readable():
   """Over many trials of every task: only the table and the objects are recoloured, the robot
   keeps its colours, objects keep their hue within the turn allowed, the table stands

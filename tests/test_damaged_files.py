@@ -177,6 +177,7 @@ def largest_array_file(step_dir: Path) -> Path:
 # each kind is damaged on purpose: arrays, orbax's JSON tree, and any largest.
 @pytest.mark.parametrize("pick", [largest_array_file, lambda d: d / "default" / "_METADATA", largest_file],
                          ids=["array-file", "metadata", "largest"])
+@pytest.mark.slow  # reads or resumes the module's trained run
 def test_damaged_checkpoint_fails_evaluation_naming_it(finished_run, tmp_path, capsys, pick):
   run = copy_run(finished_run[0], tmp_path / "run")
   step6 = run / "checkpoints" / "6"
@@ -194,6 +195,7 @@ def test_damaged_checkpoint_fails_evaluation_naming_it(finished_run, tmp_path, c
   assert (step6 / "default").is_dir()  # evaluation only reports; it moves nothing
 
 
+@pytest.mark.slow  # reads or resumes the module's trained run
 def test_corrupt_checkpoint_index_is_named(finished_run, tmp_path):
   run = copy_run(finished_run[0], tmp_path / "run")
   manifest = run / "checkpoints" / "6" / "default" / "manifest.ocdbt"
@@ -204,6 +206,7 @@ def test_corrupt_checkpoint_index_is_named(finished_run, tmp_path):
     loop.load_params(run)
 
 
+@pytest.mark.slow  # reads or resumes the module's trained run
 def test_checkpoint_of_another_model_is_not_called_damaged(finished_run, data_dir):
   wider = tiny(data_dir, "unused", "skillplug", "model.hidden=64")
   like = loop.init_params(wider, jax.random.PRNGKey(0))
@@ -212,6 +215,7 @@ def test_checkpoint_of_another_model_is_not_called_damaged(finished_run, data_di
   assert not isinstance(info.value, checkpoint.DamagedCheckpoint)
 
 
+@pytest.mark.slow  # reads or resumes the module's trained run
 def test_evaluation_reads_the_parameters_without_an_optimizer(finished_run, monkeypatch):
   """load_params gets exactly the parameters that restoring the whole training state gets,
   and builds no optimiser to do so."""
@@ -236,6 +240,7 @@ def test_evaluation_reads_the_parameters_without_an_optimizer(finished_run, monk
 
 
 @pytest.mark.parametrize("damage", ["truncated", "one-byte-flip", "step-metadata"])
+@pytest.mark.slow  # reads or resumes the module's trained run
 def test_resume_falls_back_to_the_previous_intact_checkpoint(finished_run, data_dir, tmp_path, capsys, damage):
   run, final = finished_run
   run = copy_run(run, tmp_path / "run")
@@ -262,6 +267,7 @@ def test_resume_falls_back_to_the_previous_intact_checkpoint(finished_run, data_
   assert [r["step"] for r in read_metrics(run)] == [2, 3, 4, 6]  # each step logged once
 
 
+@pytest.mark.slow  # reads or resumes the module's trained run
 def test_no_intact_checkpoint_left(finished_run, data_dir, tmp_path):
   run = copy_run(finished_run[0], tmp_path / "run")
   for step in (3, 6):
@@ -287,6 +293,7 @@ def training_state(run: Path) -> loop.TrainState:
   return loop.TrainState(jax.numpy.zeros((), "int32"), params, loop.optimizer(cfg, params, cfg.max_steps).init(params))
 
 
+@pytest.mark.slow  # reads or resumes the module's trained run
 def test_checkpoints_hold_checksums_of_their_files(finished_run):
   for step in (3, 6):
     item = finished_run[0] / "checkpoints" / str(step) / "default"
@@ -296,6 +303,7 @@ def test_checkpoints_hold_checksums_of_their_files(finished_run):
     assert checksums.problems(item, checkpoint.CHECKSUMS) == []
 
 
+@pytest.mark.slow  # reads or resumes the module's trained run
 def test_every_byte_flip_in_a_checkpoint_is_caught(finished_run, tmp_path):
   """One byte flipped at 24 offsets across each file a restore reads (each flip alone): evaluation
   and a resumed run's restore both raise DamagedCheckpoint naming the file. Without the
@@ -323,6 +331,7 @@ def test_every_byte_flip_in_a_checkpoint_is_caught(finished_run, tmp_path):
   checkpoint.restore_params(run, params)  # the files put back restore
 
 
+@pytest.mark.slow  # reads or resumes the module's trained run
 def test_a_byte_flip_orbax_misses_is_caught(finished_run, tmp_path, monkeypatch):
   """A flip in the largest array file that orbax alone restores into other numbers (most do:
   docs/training.md), found by trying offsets without the checksums; with them it is named."""
@@ -352,6 +361,7 @@ def test_a_byte_flip_orbax_misses_is_caught(finished_run, tmp_path, monkeypatch)
     mngr.close()
 
 
+@pytest.mark.slow  # reads or resumes the module's trained run
 def test_checkpoint_without_checksums_restores_with_a_note(finished_run, tmp_path, capsys):
   """Runs written before checksums were kept still evaluate and resume; a lost manifest of a
   checkpoint whose step metadata says it had one is damage."""
@@ -390,6 +400,7 @@ def test_checksums_are_written_before_the_checkpoint_appears(tmp_path, monkeypat
   assert (tmp_path / "checkpoints" / "1" / "default" / checkpoint.CHECKSUMS).is_file()
 
 
+@pytest.mark.slow  # reads or resumes the module's trained run
 def test_a_flipped_bit_in_the_step_metadata_is_named(finished_run, tmp_path):
   """Orbax reads every step's _CHECKPOINT_METADATA when it lists the checkpoints (it writes that
   file after the items, outside their manifest); a flipped bit in a key was a bare ValueError."""

@@ -141,6 +141,7 @@ def test_sampling_follows_act_epochs_and_is_deterministic(image_dataset):
     np.testing.assert_array_equal(np.asarray(batch["actions"]), a.numpy_batch(3 + i)["actions"])
 
 
+@pytest.mark.slow
 def test_batches_shard_over_four_devices(image_dataset):
   path, _ = image_dataset
   code = textwrap.dedent(f"""

@@ -184,6 +184,7 @@ def tiny(data_dir, workdir):
       "ckpt_every=2", "warmup_steps=0"])
 
 
+@pytest.mark.slow
 def test_training_locks_its_run_directory_and_resumes_after_a_kill(data_dir, tmp_path, capsys):
   cfg = tiny(data_dir, tmp_path / "run")
   loop.train(cfg, progress=False, stop_after=2)

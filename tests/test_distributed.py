@@ -11,6 +11,7 @@ import textwrap
 from pathlib import Path
 
 import numpy as np
+import pytest
 
 from skillplug_jax import experiment
 from skillplug_jax.train import checkpoint, loop, run_files
@@ -43,6 +44,7 @@ def free_port() -> int:
     return s.getsockname()[1]
 
 
+@pytest.mark.slow
 def test_two_processes_match_two_devices(data_dir, tmp_path):
   shared, single = tmp_path / "two_processes", tmp_path / "two_devices"
   # two processes on localhost, one CPU device each, one run directory

@@ -96,6 +96,7 @@ def test_backend_names_are_checked_and_auto_follows_the_platform(stack, warp_sta
     envs.batched.BatchedEnv(stack.env, 2)
 
 
+@pytest.mark.slow
 def test_both_backends_reset_every_task_to_the_same_state():
   """Same reset keys, same start: the sampler's qpos exactly, and what the
   forward pass derives from it (observations, poses) to float32 rounding."""
@@ -115,6 +116,7 @@ def test_both_backends_reset_every_task_to_the_same_state():
                  (c.done, c.reward, c.metrics, c.info), (w.done, w.reward, w.metrics, w.info))
 
 
+@pytest.mark.slow
 def test_a_nan_state_fails_its_own_episode_only_on_warp(warp_stack):
   s = warp_stack.reset(rollout.reset_keys(0, 2))
   d = s.pipeline_state
@@ -161,7 +163,7 @@ def test_a_c_engine_failure_fails_its_own_episode_only(stack, poison, capfd):
   np.testing.assert_array_equal(s2.metrics["nan"], [1.0, 0.0])
 
 
-@pytest.mark.parametrize("backend", ["mujoco", "mjx-warp"])
+@pytest.mark.parametrize("backend", ["mujoco", pytest.param("mjx-warp", marks=pytest.mark.slow)])
 def test_rendered_observations_show_the_scene_from_both_cameras(backend):
   """Both cameras, at a non-square (H, W); MuJoCo's OpenGL renderer (EGL) on the
   C engine, Warp's ray caster on MJX-Warp."""

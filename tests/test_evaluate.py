@@ -33,7 +33,7 @@ def benv():
   return envs.make(TASK, num_envs=3, backend="mujoco")
 
 
-@pytest.mark.parametrize("backend", ["mujoco", "mjx-warp"])
+@pytest.mark.parametrize("backend", ["mujoco", pytest.param("mjx-warp", marks=pytest.mark.slow)])
 def test_engine_records_what_it_runs_on_both_backends(backend):
   """The engine's two loops (jitted while_loop on MJX-Warp, host loop on the C
   engine) count steps and queries alike, and a recorded run is the same run."""
@@ -71,6 +71,7 @@ def test_nan_episode_fails_alone(benv):
   np.testing.assert_array_equal(got.first_success_step[1:], ref.first_success_step[1:])
 
 
+@pytest.mark.slow
 def test_two_devices_match_one_and_videos_follow_episodes(tmp_path):
   """The batch split over 2 (host) devices gives the same episodes as one
   device running it all; side-camera frames follow each episode to its end."""
@@ -167,16 +168,27 @@ class ShortJujubePick(envs.TASKS[TASK]):
   time_limit_s = 1.0  # 20 control steps: an untrained policy runs to the limit quickly
 
 
+def _router_on(m, params, trajectory):
+  """The router's weights [T, B, K] on each recorded step's observation, recomputed outside the
+  controller (the statistics of `_tiny_policy` normalise nothing: mean 0, std 1)."""
+  obs = trajectory.observation
+  t, b = obs["joint_pos"].shape[:2]
+  flat = {"joint_pos": jnp.asarray(obs["joint_pos"].reshape(t * b, -1)),
+          "object_state": envs.padded_object_state(jnp.asarray(obs["object_state"].reshape(t * b, -1)))}
+  _, r = Policy(m).apply({"params": params}, flat, method=Policy.predict)
+  return np.asarray(r).reshape(t, b, -1)
+
+
 def test_policy_in_the_loop_records_routing_and_queries():
   benv = MujocoBatchEnv(ShortJujubePick(envs.EnvConfig(backend="mujoco")), 3)
   m, params, stats = _tiny_policy()
   keys = env_rollout.reset_keys(9, 3)
-  every = run_episodes(benv, policy_controller(m, params, stats), keys)
+  every = run_episodes(benv, policy_controller(m, params, stats), keys, record=True)
   steps = every.steps_run
   assert steps == benv.episode_length  # an untrained policy does not succeed
   assert (every.queries == steps).all()
   assert every.routing.shape == (steps, 3, 3)
-  np.testing.assert_allclose(every.routing.sum(-1), 1.0, rtol=1e-5)
+  np.testing.assert_allclose(every.routing, _router_on(m, params, every.trajectory), rtol=1e-5, atol=1e-6)
   chunked = run_episodes(benv, policy_controller(m, params, stats, query_every=5), keys)
   assert (chunked.queries == -(-steps // 5)).all()
   assert np.isnan(chunked.routing[1]).all() and not np.isnan(chunked.routing[5]).any()
@@ -186,7 +198,9 @@ def test_policy_in_the_loop_records_routing_and_queries():
   other = jax.tree.unflatten(tree, [x + n for x, n in zip(leaves, noise)])  # router no longer uniform
   c1, c2 = policy_controller(m, params, stats), policy_controller(m, other, stats)
   assert c1.act is c2.act and c1.init is c2.init
-  assert not np.allclose(run_episodes(benv, c2, keys).routing, every.routing)
+  moved = run_episodes(benv, c2, keys, record=True)
+  assert not np.allclose(moved.routing, every.routing)
+  np.testing.assert_allclose(moved.routing, _router_on(m, other, moved.trajectory), rtol=1e-5, atol=1e-6)
   fixed = run_episodes(benv, policy_controller(m, params, stats, routing=[0.0, 1.0, 0.0]), keys)
   np.testing.assert_array_equal(fixed.routing[0], np.tile([0.0, 1.0, 0.0], (3, 1)))
   with pytest.raises(ValueError, match="query_every must be in 1..8"):

@@ -19,7 +19,7 @@ EPISODES = 2  # seeded episodes per task: the 100-episode table is `make experts
 WARP_TASKS = ("stack_block", "drawer_open")
 
 CASES = ([pytest.param(name, "mujoco", id=f"{name}-mujoco") for name in envs.TASKS]
-         + [pytest.param(name, "mjx-warp", id=f"{name}-mjx-warp") for name in WARP_TASKS])
+         + [pytest.param(name, "mjx-warp", id=f"{name}-mjx-warp", marks=pytest.mark.slow) for name in WARP_TASKS])
 
 
 @pytest.mark.parametrize("name, backend", CASES)

@@ -48,6 +48,7 @@ def run(cmd: list[str], drop=DISPLAYLESS, **extra) -> tuple[subprocess.Completed
 
 # ---- MUJOCO_GL ----------------------------------------------------------------
 
+@pytest.mark.slow
 def test_demos_render_images_with_mujoco_gl_unset(tmp_path):
   """The README's `skillplug demos`, run directly without MUJOCO_GL or a display."""
   out, _ = run([SKILLPLUG, "demos", "--taskset", "jujube_pick", "--demos", "1", "--batch", "1",
@@ -82,6 +83,7 @@ def runs(tmp_path_factory):
   return {"state": state, "image": image, "image_skillplug": image_sp}
 
 
+@pytest.mark.slow
 def test_an_image_policy_is_evaluated_on_its_own_cameras_whatever_the_caller_asks(runs):
   """A caller that does not ask for rendering (the skill probes did not) still shows an image
   policy its cameras at its own size; a different size is a named error, not a silent rescale."""
@@ -95,6 +97,7 @@ def test_an_image_policy_is_evaluated_on_its_own_cameras_whatever_the_caller_ask
     protocol.evaluate_task(TASKS[0], controller, trials=1, render=True, image_size=(64, 64), backend="mujoco")
 
 
+@pytest.mark.slow
 def test_skill_probe_geometry_reads_an_image_policys_cameras(runs):
   """The probes' demonstration states carry both cameras for an image policy, so that its
   skills' geometry (and CKA against the image ACT encoder) is computed, not a KeyError."""
@@ -110,6 +113,7 @@ def test_skill_probe_geometry_reads_an_image_policys_cameras(runs):
 
 
 @pytest.mark.parametrize("case", ["demos", "eval --videos", "image policy eval"])
+@pytest.mark.slow
 def test_a_renderer_that_cannot_start_is_a_named_error(case, runs, tmp_path):
   """GLFW without a display: a one-line error naming the cause and the fix, well within the timeout."""
   cmd = {"demos": ["demos", "--taskset", "jujube_pick", "--demos", "1", "--batch", "2", "--image-size", "16",
@@ -195,11 +199,13 @@ def tunables_seen(cmd: list[str], tmp_path: Path, **extra) -> str:
 @pytest.mark.parametrize("cmd", [[SKILLPLUG, "--help"], [sys.executable, "-m", "skillplug_jax.cli", "--help"],
                                  [sys.executable, "-m", "experiments.configs.quick"]],
                          ids=["skillplug", "python -m skillplug_jax.cli", "python -m experiments..."])
+@pytest.mark.slow
 def test_entry_points_start_with_the_makefile_tunables(cmd, tmp_path):
   assert tunables_seen(cmd, tmp_path) == repr(startup.TUNABLES)
 
 
 @glibc
+@pytest.mark.slow
 def test_a_users_tunables_are_kept_and_a_library_import_restarts_nothing(tmp_path):
   assert tunables_seen([SKILLPLUG, "--help"], tmp_path, GLIBC_TUNABLES="glibc.malloc.check=0") \
       == repr("glibc.malloc.check=0")

@@ -13,6 +13,7 @@ import pytest
 from experiments import pipeline, publish
 from skillplug_jax import experiment, fewshot
 from skillplug_jax.evaluate import groups, protocol
+from skillplug_jax.model.policy import Policy
 from skillplug_jax.train import config as train_config
 from skillplug_jax.train import loop, run_files
 
@@ -170,6 +171,7 @@ def tiny_run(tmp_path_factory):
   return exp, out, summary
 
 
+@pytest.mark.slow
 def test_pipeline_runs_the_protocol_and_writes_routing_arrays(tiny_run):
   _, out, summary = tiny_run
   pre, few = summary["pretrain"], summary["fewshot"]
@@ -203,6 +205,7 @@ def test_pipeline_runs_the_protocol_and_writes_routing_arrays(tiny_run):
   assert published["pretrain"]["table"] == json.loads(json.dumps(pre["table"]))  # tuples as JSON lists
 
 
+@pytest.mark.slow
 def test_pipeline_resumes_without_training_or_evaluating_again(tiny_run, monkeypatch):
   exp, out, summary = tiny_run
   monkeypatch.setattr(protocol, "evaluate_task", lambda *a, **k: pytest.fail("evaluated again"))
@@ -236,6 +239,7 @@ def _rows_of(run: Path) -> dict:
   return groups.group_rows([groups.row_fields(c, record) for c in (cfg, other)])
 
 
+@pytest.mark.slow
 def test_a_run_records_its_fewshot_protocol_and_overrides(tiny_run):
   _, _, summary = tiny_run
   run = _skillplug_run(summary)
@@ -256,6 +260,7 @@ def test_a_run_records_its_fewshot_protocol_and_overrides(tiny_run):
   assert run_files.stored_record(few_run) == run_files.stored_record(run)
 
 
+@pytest.mark.slow
 def test_editing_the_config_afterwards_changes_neither_row_nor_fewshot(tiny_run, tmp_path, monkeypatch):
   run = _skillplug_run(tiny_run[2])
   before = _rows_of(run)
@@ -276,6 +281,7 @@ def test_editing_the_config_afterwards_changes_neither_row_nor_fewshot(tiny_run,
   assert _rows_of(run) == before and experiment.read_record(run).fewshot == plan
 
 
+@pytest.mark.slow
 def test_a_run_or_result_without_a_record_falls_back_to_todays_config(tiny_run, tmp_path, monkeypatch, capsys):
   run = _skillplug_run(tiny_run[2])
   saved = json.loads((run / "config.json").read_text())
@@ -310,6 +316,7 @@ def test_published_summaries_from_before_the_record_still_tabulate(capsys):
 
 @pytest.mark.parametrize("name", ["success_tables.ipynb", "routing.ipynb", "skill_similarity.ipynb",
                                   "fixed_skills.ipynb"])
+@pytest.mark.slow
 def test_notebooks_execute_on_a_published_run(tiny_run, name, monkeypatch, tmp_path):
   """The committed notebooks run top to bottom on a (smoke-size) published pipeline run and draw;
   `--into` writes them elsewhere and leaves the committed notebook as it is."""
@@ -338,6 +345,7 @@ def test_notebooks_execute_on_a_published_run(tiny_run, name, monkeypatch, tmp_p
   assert "config 'quick'" in printed
 
 
+@pytest.mark.slow
 def test_variants_run_in_their_own_folders_and_join_the_reference_rows(tiny_run):
   """An ablation-style config: each variant's runs under OUT/<name>, datasets shared, its row
   named by what it changed, read beside the rows of a published reference summary."""
@@ -420,6 +428,7 @@ def test_linear_cka_is_one_for_rotations_and_low_for_unrelated_features():
   assert linear_cka(x, rng.normal(size=(200, 5))) < 0.2
 
 
+@pytest.mark.slow
 def test_skill_probes_replace_the_routing_and_measure_the_skills(tiny_run, capsys):
   from experiments import skill_probes
   _, out, summary = tiny_run
@@ -443,14 +452,28 @@ def test_skill_probes_replace_the_routing_and_measure_the_skills(tiny_run, capsy
     own.with_suffix(".aside").rename(own)
   assert again["router"][sp[0]["task"]]["trial_success"] == sp[0]["trial_success"]
   g = probe["geometry"]
-  assert np.allclose(np.diag(g["skill_cosine"]), 1.0, atol=1e-4)
+  # the geometry against the same quantities recomputed here, in numpy, from the run's weights and
+  # the probes' demonstration states
+  cfg, params, _ = loop.load_params(run)
+  policy = Policy(cfg.model)
+  unit = lambda x: x / np.linalg.norm(x, axis=-1, keepdims=True)  # noqa: E731
+  emb = unit(np.asarray(policy.apply({"params": params}, method=lambda mod: mod.skills())))
+  np.testing.assert_allclose(g["skill_cosine"], emb @ emb.T, atol=1e-4)
+  states = skill_probes.demo_states(run, list(g["tasks"]))
+  chosen = []
   for task, row in g["tasks"].items():
-    assert np.allclose(np.diag(row["interactor_cosine"]), 1.0, atol=1e-4) and row["states"] == 8  # 2 demos x 4
+    obs = {k: v for k, v in states[task].items() if k != "mined_phase"}
+    f = policy.apply({"params": params}, obs, method=Policy.features)
+    um = unit(np.asarray(f["skill_tokens"]).mean(axis=2))  # [B, K, D], token-averaged u_k
+    np.testing.assert_allclose(row["interactor_cosine"], np.einsum("bkd,bld->kl", um, um) / len(um), atol=1e-4)
+    assert row["states"] == len(um) == 8  # 2 demos x 4
     assert 0.0 < row["cka_fused_vs_act"] <= 1.0 + 1e-6 and row["interactor_spread"] >= 0.0
-    assert sum(row["router_mean"]) == pytest.approx(1.0, abs=1e-5)
+    np.testing.assert_allclose(row["router_mean"], np.asarray(f["routing"]).mean(0), atol=1e-5)
+    chosen.append(np.asarray(f["routing"]).argmax(-1))
   # every demonstration state counted once under its mined phase and the skill the router chose
   counts = np.asarray(g["phase_skill_counts"])
   assert counts.shape == (4, 3) and counts.sum() == sum(row["states"] for row in g["tasks"].values())
+  np.testing.assert_array_equal(counts.sum(0), np.bincount(np.concatenate(chosen), minlength=3))
   assert 0.0 <= g["phase_skill_nmi"] <= 1.0
   assert "| uniform |" in capsys.readouterr().out
   # mixed-skill rollouts: each pair half and half, only the modes asked for

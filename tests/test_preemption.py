@@ -9,16 +9,20 @@ import sys
 import time
 from pathlib import Path
 
-import jax
 import numpy as np
 import pytest
 
 from skillplug_jax.train import checkpoint, loop, preemption
 from skillplug_jax.train.scalars import read_metrics
-from test_train import data_dir, tiny  # noqa: F401  (data_dir: the module fixture of synthetic demos)
+from test_train import data_dir, leaves, tiny  # noqa: F401  (data_dir: the module fixture of synthetic demos)
 
 ROOT = Path(__file__).resolve().parents[1]
 ENV = {**os.environ, "PYTHONPATH": os.pathsep.join([str(ROOT), str(ROOT / "tests")])}
+
+# The tiny model of the runs started here as commands (test_train's `tiny`, one decoder layer).
+SMALL = ("model.hidden=32", "model.heads=2", "model.ff=64", "model.enc_layers=1", "model.dec_layers=1",
+         "model.cvae_enc_layers=1", "model.plug.num_skills=3", "model.plug.skill_latent_dim=8",
+         "model.plug.alignment_dim=16", "model.chunk=10")
 
 # Trains `tiny(...)` and sends itself SIGTERM while the scalars of step 3 are logged, just after the
 # loop last looked for a stop: it runs step 4, sees the request, checkpoints 4 (between the periodic
@@ -41,10 +45,6 @@ except preemption.Preempted as e:
   print(e, file=sys.stderr)
   sys.exit(e.exit_code)
 """
-
-
-def leaves(params):
-  return jax.tree.leaves(jax.tree.map(np.asarray, params))
 
 
 def wait_for(predicate, proc, timeout: float, what: str, log: Path) -> None:
@@ -70,6 +70,7 @@ def logged_steps(run: Path) -> list[int]:
   return [r["step"] for r in read_metrics(run)] if (run / "metrics.jsonl").exists() else []
 
 
+@pytest.mark.slow
 def test_sigterm_checkpoints_the_step_under_way_and_resuming_is_bit_identical(data_dir, tmp_path):  # noqa: F811
   straight = loop.train(tiny(data_dir, tmp_path / "straight"), progress=False)
   cfg = tiny(data_dir, tmp_path / "stopped")
@@ -88,14 +89,13 @@ def test_sigterm_checkpoints_the_step_under_way_and_resuming_is_bit_identical(da
   assert logged_steps(cfg.run_dir) == [2, 3, 4, 6]
 
 
+@pytest.mark.slow
 def test_cli_pretrain_stops_on_sigterm_with_the_resume_command(data_dir, tmp_path):  # noqa: F811
   """A real signal from outside, at a moment the test does not choose: the step checkpointed is the
   one the run had reached, and the message says how to resume."""
   run = tmp_path / "cli"
-  overrides = ["demos=3", f"data_dir={data_dir}", "model.hidden=32", "model.heads=2", "model.ff=64",
-               "model.enc_layers=1", "model.dec_layers=1", "model.cvae_enc_layers=1", "model.plug.num_skills=3",
-               "model.plug.skill_latent_dim=8", "model.plug.alignment_dim=16", "model.chunk=10", "batch_size=4",
-               "max_steps=1000000", "log_every=2", "ckpt_every=1000000", "warmup_steps=2"]
+  overrides = ["demos=3", f"data_dir={data_dir}", *SMALL, "batch_size=4", "max_steps=1000000", "log_every=2",
+               "ckpt_every=1000000", "warmup_steps=2"]
   cmd = [sys.executable, "-m", "skillplug_jax.cli", "pretrain", "--config", "quick", "--taskset",
          "jujube_pick,kiwi_place", "--workdir", str(run)] + [a for o in overrides for a in ("--set", o)]
   log = tmp_path / "stderr.txt"  # a file, not a pipe: the progress bar never fills it and blocks
@@ -117,6 +117,7 @@ def test_cli_pretrain_stops_on_sigterm_with_the_resume_command(data_dir, tmp_pat
   assert logged_steps(run)[-1] == step  # the window up to the stop is logged, none after it
 
 
+@pytest.mark.slow
 def test_pipeline_stops_every_worker_cleanly_on_sigint(data_dir, tmp_path):  # noqa: F811
   """Ctrl-C reaches the pipeline's process alone here (as a cluster's SIGTERM may): both workers'
   training jobs checkpoint their step and stop, the queued jobs never start, and the exit code says
@@ -127,9 +128,7 @@ def test_pipeline_stops_every_worker_cleanly_on_sigint(data_dir, tmp_path):  # n
     (out / "datasets" / d.name).symlink_to(d)
   overrides = ["train.taskset=jujube_pick,kiwi_place", "train.demos=3", "train.max_steps=1000000",
                "train.batch_size=4", "train.warmup_steps=1", "train.log_every=2", "train.ckpt_every=1000000",
-               "train.model.hidden=32", "train.model.heads=2", "train.model.ff=64", "train.model.enc_layers=1",
-               "train.model.dec_layers=1", "train.model.plug.num_skills=3", "train.model.plug.skill_latent_dim=8",
-               "train.model.plug.alignment_dim=16", "train.model.chunk=10", "run_fewshot=false", "workers=2",
+               *(f"train.{o}" for o in SMALL if o != "model.cvae_enc_layers=1"), "run_fewshot=false", "workers=2",
                "seeds=0,1"]
   cmd = [sys.executable, "-m", "experiments.pipeline", "--config", "quick", "--out", str(out)]
   cmd += [a for o in overrides for a in ("--set", o)]
@@ -173,22 +172,3 @@ def test_the_errors_pickle_with_their_fields():  # a pipeline worker's error rea
   assert "stopped by SIGTERM at step 7" in str(e)
   s = pickle.loads(pickle.dumps(preemption.Stopped(signal.SIGINT)))
   assert s.exit_code == 130 and "stopped by SIGINT" in str(s)
-
-
-def test_soak_repeated_kill_9_ends_bit_identical(data_dir, tmp_path):  # noqa: F811
-  """The soak drill at a small size (benchmarks/soak_kill.py runs it at full size): killed with
-  SIGKILL at random steps and once in the middle of a checkpoint write, the run still ends equal to
-  an uninterrupted one, bit for bit."""
-  from benchmarks import soak_kill
-  overrides = ("demos=3", f"data_dir={data_dir}", "model.hidden=32", "model.heads=2", "model.ff=64",
-               "model.enc_layers=1", "model.dec_layers=1", "model.cvae_enc_layers=1", "model.plug.num_skills=3",
-               "model.plug.skill_latent_dim=8", "model.plug.alignment_dim=16", "model.chunk=10", "batch_size=4",
-               "warmup_steps=2")
-  result = soak_kill.soak(tmp_path, kills=2, steps=120, ckpt_every=10, seed=1, overrides=overrides, env=ENV,
-                          log=lambda *a: None, in_process=True)
-  in_save = [e for e in result["kills"] if e["kind"] == "during a checkpoint write"]
-  assert in_save and in_save[0]["rc"] == -signal.SIGKILL
-  random_kill = [e for e in result["kills"] if e["kind"] != "during a checkpoint write"]
-  assert random_kill and random_kill[0]["rc"] == -signal.SIGKILL, result["kills"]  # it landed before the end
-  assert result["final_steps"] == [120, 120]
-  assert result["identical"] and result["max_abs_diff"] == 0.0, result

@@ -15,6 +15,8 @@ from skillplug_jax.train.scalars import read_metrics
 from host_devices import run_on_host_devices
 from synthetic import state_dataset_name, synthetic_episode, write_synthetic, write_two_task_demos
 
+pytestmark = pytest.mark.slow  # every test here trains (and one starts four simulated devices)
+
 TASKS = ("jujube_pick", "kiwi_place")
 TARGET = "block_place"  # an unseen task for the few-shot runs
 
