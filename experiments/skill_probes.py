@@ -107,7 +107,7 @@ def _features(module: Policy, obs):
   """The inference path's plug input (scene tokens, or decoder steps with plug.site='decoder'),
   interactor outputs, routing, fused feature and skill embeddings."""
   f = module.features(obs)
-  return f["plug_input"], f["skill_tokens"], f["routing"], f["fused"], module.skills()
+  return f["plug_input"], f["skill_tokens"], f["routing"], f["fused"], module.plug.skills()
 
 
 def _cos(a, b):

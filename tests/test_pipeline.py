@@ -457,7 +457,7 @@ def test_skill_probes_replace_the_routing_and_measure_the_skills(tiny_run, capsy
   cfg, params, _ = loop.load_params(run)
   policy = Policy(cfg.model)
   unit = lambda x: x / np.linalg.norm(x, axis=-1, keepdims=True)  # noqa: E731
-  emb = unit(np.asarray(policy.apply({"params": params}, method=lambda mod: mod.skills())))
+  emb = unit(np.asarray(policy.apply({"params": params}, method=lambda mod: mod.plug.skills())))
   np.testing.assert_allclose(g["skill_cosine"], emb @ emb.T, atol=1e-4)
   states = skill_probes.demo_states(run, list(g["tasks"]))
   chosen = []
