@@ -8,7 +8,7 @@ the numbers that tell such a library from a used one, in every training log
 
 Routing, from weights r [..., K] (every query, or every sample of a batch):
 usage_entropy, routing_entropy_per_query, effective_skills and mean_weights
-(`evaluate.routing.routing_stats`, the one implementation and its names), and
+(`routing_statistics.routing_stats`, the one implementation and its names), and
   task_skill_mi     I(T; S) in nats, with p(s | t) the mean routing of task
                     t's queries (0: every task routed alike), and
                     task_skill_mi_norm, the same over min(log K, log #tasks).
@@ -38,7 +38,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from skillplug_jax.evaluate import routing
+from skillplug_jax import routing_statistics as routing
 
 _EPS = 1e-12
 
