@@ -142,12 +142,33 @@ def skill_geometry(u: jnp.ndarray, h: jnp.ndarray, r: jnp.ndarray) -> dict:
   return out
 
 
-def training_metrics(outputs: Mapping[str, jnp.ndarray], task_ids: jnp.ndarray | None = None) -> dict:
+def label_skill_mi(probs: jnp.ndarray, labels: jnp.ndarray) -> dict:
+  """I(L; S) between each query's label (a mined phase, `train.skill_labels`) and its routing, over
+  the queries whose label is in [0, K) (what `losses.router_label_loss` reads; -1: unlabelled):
+  label_skill_mi in nats and label_skill_mi_norm over min(log K, log #labels present). Jit-safe."""
+  k = probs.shape[-1]
+  p = jnp.asarray(probs, jnp.float32).reshape(-1, k)
+  ids = jnp.asarray(labels).reshape(-1).astype(jnp.int32)
+  w = ((ids >= 0) & (ids < k)).astype(jnp.float32)
+  ids = jnp.clip(ids, 0, k - 1)
+  counts = jax.ops.segment_sum(w, ids, k)
+  per_label = jax.ops.segment_sum(p * w[:, None], ids, k) / jnp.maximum(counts, 1.0)[:, None]
+  mean = (p * w[:, None]).sum(0) / jnp.maximum(w.sum(), 1.0)
+  kl = (per_label * (jnp.log(jnp.clip(per_label, _EPS, 1.0)) - jnp.log(jnp.clip(mean, _EPS, 1.0)))).sum(-1)
+  mi = jnp.maximum((counts / jnp.maximum(counts.sum(), 1.0) * kl).sum(), 0.0)
+  present = (counts > 0).sum().astype(jnp.float32)
+  return dict(label_skill_mi=mi, label_skill_mi_norm=_normalised_mi(mi, k, present))
+
+
+def training_metrics(outputs: Mapping[str, jnp.ndarray], task_ids: jnp.ndarray | None = None,
+                     labels: jnp.ndarray | None = None) -> dict:
   """The scalar diagnostics of one training batch, as diag_<name> (no gradient).
 
   The routing statistics and the geometry read the router's weights (what
   the fusion used). task_skill_mi here is a batch estimate (a few queries per task: biased
-  upwards); the evaluation's is the one to quote.
+  upwards); the evaluation's is the one to quote. labels (the batch's `skill_label`, when
+  `train.skill_labels` names a labeller): also label_skill_mi(_norm), the routing's information
+  about the mined phase, logged whatever `loss.router_label` weighs (0: a diagnostic only).
   """
   out = jax.lax.stop_gradient({k: v for k, v in outputs.items() if k != "pred_actions"})
   tid = None if task_ids is None else jax.lax.stop_gradient(task_ids)
@@ -155,6 +176,8 @@ def training_metrics(outputs: Mapping[str, jnp.ndarray], task_ids: jnp.ndarray |
   names = ["usage_entropy", "routing_entropy_per_query", "effective_skills"]
   names += ["task_skill_mi", "task_skill_mi_norm"] if tid is not None else []
   m = {f"diag_{k}": stats[k] for k in names}
+  if labels is not None:
+    m.update({f"diag_{k}": v for k, v in label_skill_mi(out["router_probs"], labels).items()})
   if "skill_tokens" in out and "plug_input" in out:
     g = skill_geometry(out["skill_tokens"], out["plug_input"], out["router_probs"])
     for k in ("signed_cos", "abs_cos", "signed_cos_centred", "abs_cos_centred",

@@ -258,6 +258,6 @@ def total_loss(outputs: Mapping[str, jnp.ndarray], batch: Mapping[str, jnp.ndarr
                          f"({term.why_missing}); these batches have none")
       metrics[name] = term.value(outputs, batch)
       loss = loss + w * metrics[name]
-    metrics.update(diagnostics.training_metrics(outputs, batch.get("task_id")))
+    metrics.update(diagnostics.training_metrics(outputs, batch.get("task_id"), batch.get("skill_label")))
   metrics["loss"] = loss
   return loss, metrics

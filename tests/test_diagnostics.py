@@ -180,6 +180,32 @@ def test_routing_stats_of_one_skill_per_task():
   assert float(jitted["task_skill_mi"]) == pytest.approx(math.log(k), rel=1e-5)
 
 
+def test_label_skill_mi_reads_the_labelled_queries_only():
+  """Each phase routed one-hot to its own skill: the routing tells the phase (normalised MI 1),
+  and unlabelled queries (-1), routed anywhere, change nothing; routing that ignores the phase: 0."""
+  k = 4
+  labels = jnp.asarray([0, 1, 2, 3, 1, 2, 0, 3])
+  probs = jax.nn.one_hot(labels, k)
+  noise = jax.nn.one_hot(jnp.asarray([2, 2, 0]), k)  # unlabelled queries, routed at random
+  s = diagnostics.label_skill_mi(jnp.concatenate([probs, noise]), jnp.concatenate([labels, jnp.full(3, -1)]))
+  assert float(s["label_skill_mi"]) == pytest.approx(math.log(k), rel=1e-5)
+  assert float(s["label_skill_mi_norm"]) == pytest.approx(1.0, rel=1e-5)
+  s = jax.jit(diagnostics.label_skill_mi)(jnp.full((8, k), 1 / k), labels)
+  assert float(s["label_skill_mi"]) == pytest.approx(0.0, abs=1e-6)
+  # two phases present: normalised by log 2, not log K
+  two = diagnostics.label_skill_mi(jax.nn.one_hot(jnp.asarray([0, 1, 0, 1]), k), jnp.asarray([0, 1, 0, 1]))
+  assert float(two["label_skill_mi_norm"]) == pytest.approx(1.0, rel=1e-5)
+
+
+def test_training_logs_the_phase_information_when_the_batch_has_labels():
+  k, b = 4, 8
+  labels = jnp.asarray([0, 1, 2, 3, 3, 2, 1, 0])
+  out = dict(router_probs=jax.nn.one_hot(labels, k))
+  assert "diag_label_skill_mi_norm" not in diagnostics.training_metrics(out)
+  m = diagnostics.training_metrics(out, jnp.zeros(b, int), labels)
+  assert float(m["diag_label_skill_mi_norm"]) == pytest.approx(1.0, rel=1e-5)
+
+
 def test_combining_tasks_equals_the_stats_of_all_queries():
   rng = np.random.default_rng(0)
   parts = [jax.nn.softmax(jnp.asarray(rng.normal(size=(n, 3)) * 2 + rng.normal(size=3) * 2, jnp.float32))
