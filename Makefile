@@ -21,7 +21,7 @@ export MUJOCO_GL ?= egl
 # contention doubled the quick preset's step.) docs/measurements/speed.md.
 export GLIBC_TUNABLES ?= glibc.malloc.hugetlb=1
 
-.PHONY: install test test-fast quickstart toy-skills paper-cpu paper-cpu-image loss-ablation k-sweep notebooks experts demos pretrain fewshot eval bench-envs bench-loader bench-train bench-eval bench-eval-scale bench soak scenes clean
+.PHONY: install test test-fast quickstart toy-skills paper-cpu paper-cpu-image loss-ablation k-sweep plug-readings notebooks experts demos pretrain fewshot eval bench-envs bench-loader bench-train bench-eval bench-eval-scale bench soak scenes clean
 
 install: $(VENV)/.installed
 
@@ -94,6 +94,13 @@ loss-ablation: install
 k-sweep: install
 	$(PY) -m experiments.pipeline --config k_sweep --out $(OUT)/k_sweep --publish docs/results/k_sweep $(SET)
 	$(PY) -m experiments.skill_probes --config k_sweep --out $(OUT)/k_sweep --geometry-only --publish docs/results/k_sweep
+
+# Issue 43: the plug on the encoder and on the decoder, light and heavy heads, a capacity-matched
+# adapter, router frozen and uniform (experiments/configs/plug_readings.py), then the routing over
+# training of every ACT+SkillPlug run. Resumable: the same command reads back what is done.
+plug-readings: install
+	$(PY) -m experiments.pipeline --config plug_readings --out $(OUT)/plug_readings $(SET)
+	$(PY) -m experiments.routing_curves $(OUT)/plug_readings/plug_*/runs/*_skillplug_cpu_seed? --out $(OUT)/plug_readings/routing_curves
 
 # The notebooks (notebooks/), executed in place on docs/results/paper_cpu.
 notebooks: install

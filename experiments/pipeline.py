@@ -51,7 +51,7 @@ from skillplug_jax.startup import cpu_name
 from skillplug_jax.evaluate import groups, protocol, toy_rollout
 from skillplug_jax.evaluate.routing import renamed
 from skillplug_jax.evaluate.policy_controller import load_controller
-from skillplug_jax.experiment import Experiment, RunRecord, Variant
+from skillplug_jax.experiment import Experiment, FewShot, RunRecord, Variant
 from skillplug_jax.train import loop, preemption, run_files
 from skillplug_jax.train import toy as toy_train
 from skillplug_jax.train.config import TrainConfig
@@ -73,8 +73,18 @@ def pretrain_config(exp: Experiment, policy: str, seed: int, out: Path,
 
 def arms(exp: Experiment, out: Path) -> list[tuple[Variant, Experiment, Path]]:
   """(variant, its experiment, its output folder): OUT itself for a config without variants,
-  OUT/<variant> for each variant (the datasets are shared, in OUT/datasets)."""
-  return [(v, e, out / v.name if v.name else out) for v, e in experiment.expand(exp)]
+  OUT/<variant> for each variant (the datasets are shared, in OUT/datasets), and for a variant that
+  adapts another's runs (`Variant.adapts`), that variant's folder."""
+  return [(v, e, out / (v.adapts or v.name) if v.name else out) for v, e in experiment.expand(exp)]
+
+
+def protocol_fields(plan: FewShot, policy: str) -> dict:
+  """A few-shot result's protocol as training-key fields (`fewshot.trainable`, and the fine-tune's
+  own overrides where it has any), so that two protocols on the same runs are two rows."""
+  fields = {"fewshot.trainable": list(plan.trainable.of(policy))}
+  if plan.train_overrides:
+    fields["fewshot.train_overrides"] = list(plan.train_overrides)
+  return fields
 
 
 def evaluated(run: Path, tasks, exp: Experiment, name: str, source: Path, extra: dict | None = None) -> list[dict]:
@@ -104,7 +114,8 @@ def evaluated(run: Path, tasks, exp: Experiment, name: str, source: Path, extra:
 
 
 def job(exp: Experiment, policy: str, seed: int, out: Path, data_dir: Path | None = None,
-        variant: str = "", record: RunRecord | None = None) -> dict:
+        variant: str = "", record: RunRecord | None = None, adapts: str = "",
+        protocol_in_rows: bool = False) -> dict:
   """Pretrain one (policy, seed), evaluate it, adapt it to every unseen task (one worker process).
 
   record: what the run records of its config (default `experiment.record(exp, policy)`, its
@@ -118,6 +129,11 @@ def job(exp: Experiment, policy: str, seed: int, out: Path, data_dir: Path | Non
   evaluated by the toy's closed loop (`evaluate.toy_rollout.evaluated`, results in the same
   format); its extras per run (routing against the primitives, fixed-skill probe, zero-shot)
   come back under "toy".
+
+  adapts: `variant` adapts the runs of this variant (`Variant.adapts`, in `out`, trained by an
+  earlier job): its pretraining is read back, not tabulated again, and its fine-tunes follow
+  `exp.fewshot` (its own protocol) into RUN_fewshot_<variant>/. protocol_in_rows: few-shot results
+  carry their protocol in their training key (`protocol_fields`), so that protocols are rows.
   """
   envs.quiet_warp()
   label, stages = f"{variant + ' ' if variant else ''}{policy} seed {seed}", {}
@@ -143,14 +159,21 @@ def job(exp: Experiment, policy: str, seed: int, out: Path, data_dir: Path | Non
   if exp.run_fewshot:
     t0 = time.time()
     source, recorded = run_files.read_config(run), experiment.read_record(run)
-    plan = recorded.fewshot  # the protocol the run recorded: this experiment's, its overrides included
+    # the protocol the run recorded (this experiment's, its overrides included), or this arm's own
+    plan = exp.fewshot if adapts else recorded.fewshot
     for task in tasks_of(plan.taskset):
-      few = fewshot.fewshot_config(source, run, task, plan)
+      few = fewshot.fewshot_config(source, run, task, plan, variant if adapts else "")
       few_run = train(few, progress=False, record=recorded)
       steps = few.num_steps(plan.demos)  # the dataset holds `demos` episodes of the task
       results = evaluate(few_run, [task], exp, task, run, extra=dict(source=str(run)))
       adapted += [dict(r, trainable=list(few.trainable), steps=steps) for r in results]
+    if protocol_in_rows:
+      fields = protocol_fields(plan, policy)
+      adapted = [dict(r, config={**r["config"], **fields}, overrides={**r["overrides"], **fields})
+                 for r in adapted]
     stage("few-shot adapt + evaluate", t0)
+  if adapts:  # its pretraining is its source's, tabulated there
+    pretrain = []
   if variant:  # which arm of the experiment each result belongs to
     pretrain, adapted = [dict(r, variant=variant) for r in pretrain], [dict(r, variant=variant) for r in adapted]
   return dict(run=str(run), pretrain=pretrain, fewshot=adapted, stages_s=stages, **({"toy": extras} if toy else {}))
@@ -254,20 +277,30 @@ def run(exp: Experiment, out: Path, configs: Path | None = None) -> dict:
   exp = dataclasses.replace(exp, train=dataclasses.replace(exp.train, backend=backend))
   print(f"[pipeline] {exp.train.preset}: expert demonstrations ...", file=sys.stderr, flush=True)
   stages = {"demonstrations": make_datasets(exp, out)}
-  # the slower policy first, so that the last job to start is a short one
-  jobs = [(v.name, arm, arm_out, p, s) for v, arm, arm_out in arms(exp, out) for s in arm.seeds
+  # the slower policy first, so that the last job to start is a short one; arms that adapt another's
+  # runs after every arm that trains (a run is trained by one process at a time)
+  by_arm = arms(exp, out)
+  protocol_in_rows = any(v.adapts for v, _, _ in by_arm)
+  jobs = [(v, arm, arm_out, p, s) for adapting in (False, True) for v, arm, arm_out in by_arm
+          if bool(v.adapts) == adapting for s in arm.seeds
           for p in sorted(arm.policies, key=lambda p: p != "skillplug")]
   print(f"[pipeline] {len(jobs)} jobs (variant, policy, seed) on {exp.workers} workers, physics on "
         f"{exp.train.backend} (a line per finished stage) ...", file=sys.stderr, flush=True)
   t0 = time.time()
-  args = [(arm, p, s, arm_out, out / "datasets", name, experiment.record(arm, p, configs))
-          for name, arm, arm_out, p, s in jobs]
-  if exp.workers == 1:  # in this process, one job after another
-    with preemption.RaiseOnSignal():
-      parts = [job(*a) for a in args]
-  else:
-    parts = in_workers(exp.workers, args)
+  args = [(arm, p, s, arm_out, out / "datasets", v.name, experiment.record(arm, p, configs), v.adapts,
+           protocol_in_rows) for v, arm, arm_out, p, s in jobs]
+  phases = [[a for a in args if not a[7]], [a for a in args if a[7]]]
+  parts = []
+  for phase in phases:
+    if not phase:
+      continue
+    if exp.workers == 1:  # in this process, one job after another
+      with preemption.RaiseOnSignal():
+        parts += [job(*a) for a in phase]
+    else:
+      parts += in_workers(exp.workers, phase)
   stages["jobs (parallel)"] = round(time.time() - t0, 1)
+  jobs = [(v.name, arm, arm_out, p, s) for v, arm, arm_out, p, s in jobs]
   for (name, _, _, p, s), part in zip(jobs, parts):
     stages.update({f"{name + ' ' if name else ''}{p} seed {s} {k}": v for k, v in part["stages_s"].items()})
   ref = {stage: publish.reference_results(exp.reference, stage) if exp.reference else []

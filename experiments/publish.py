@@ -273,8 +273,10 @@ def variants_report(summary: dict) -> str:
         continue
       seeds = per_seed_avg(summary, s, row)
       cells.append(f"{_avg(summary[s]['table'], row)} ({', '.join(f's{k}: {x:.1f}' for k, x in seeds.items())})")
-    row = v["rows"]["pretrain"]
-    seeds = summary["pretrain"]["rows"][row]["seeds"] if row else []
+    # an arm that adapts another's runs has few-shot rows only (its pretraining is its source's)
+    stage = next((s for s in stages if v["rows"].get(s)), "pretrain")
+    row = v["rows"].get(stage)
+    seeds = summary[stage]["rows"][row]["seeds"] if row else []
     ent = v.get("routing_entropy_per_query")
     cells.append("-" if ent is None else f"{ent:.3f}")
     lines.append(f"| {v['label']} | {row or '-'} | {','.join(map(str, seeds))} | " + " | ".join(cells) + " |")

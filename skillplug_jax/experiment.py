@@ -30,6 +30,7 @@ from typing import Iterable
 from skillplug_jax import validation
 from skillplug_jax.model.config import POLICIES
 from skillplug_jax.train import config as train_config
+from skillplug_jax.train import run_files
 from skillplug_jax.train.config import TrainConfig
 # The few-shot protocol and the run record live beside the training loop that writes them;
 # config files import them from here (`from skillplug_jax.experiment import Experiment, FewShot`).
@@ -51,9 +52,18 @@ def _variant_names_ok(exp: "Experiment") -> bool:
           and all(n and "/" not in n and not n.startswith(".") for n in names_seen))
 
 
+def _adapted_sources_ok(exp: "Experiment") -> bool:
+  trains = {v.name for v in exp.variants if not v.adapts}
+  return all(v.adapts in trains for v in exp.variants if v.adapts)
+
+
 _EXPERIMENT_RELATIONS = (
     validation.Relation("variants", _variant_names_ok,
                         lambda e: "distinct folder names (non-empty, no '/', not starting with '.')",
+                        lambda e: [v.name for v in e.variants]),
+    validation.Relation("variants", _adapted_sources_ok,
+                        lambda e: "an `adapts` that names a variant of the same experiment which trains its "
+                                  "own runs (adapts nothing itself)",
                         lambda e: [v.name for v in e.variants]),
 )
 
@@ -66,6 +76,10 @@ class Variant:
   name: str
   overrides: tuple[str, ...] = ()
   label: str = ""  # default: the name
+  # Another variant's name: this arm trains nothing of its own; it adapts that arm's pretrained runs
+  # by its own few-shot protocol (its overrides may change `fewshot.*` and the policies and seeds it
+  # adapts, not training), its fine-tunes beside the source's, in RUN_fewshot_<name>/.
+  adapts: str = ""
 
 
 @dataclasses.dataclass(frozen=True)
@@ -108,7 +122,23 @@ def expand(exp: Experiment) -> list[tuple[Variant, Experiment]]:
       raise
     except ValueError as e:  # an unknown setting: which arm, as well as which key
       raise ValueError(f"variant {v.name!r}: {e}") from e
+  by_name = dict((v.name, e) for v, e in arms)
+  for v, e in arms:
+    if v.adapts:
+      _check_adapts(v, e, by_name[v.adapts])
   return arms
+
+
+def _check_adapts(v: Variant, arm: Experiment, source: Experiment) -> None:
+  """An adapting arm must find its source's runs: the same training, policies and seeds among its."""
+  if arm.train != source.train:
+    diffs = run_files.config_differences(source.train, arm.train, "train.")
+    raise ValueError(f"variant {v.name!r} adapts {v.adapts!r} but trains otherwise ({'; '.join(diffs)}): an arm "
+                     "that adapts another may change only the few-shot protocol (fewshot.*)")
+  for what in ("policies", "seeds"):
+    missing = sorted(set(getattr(arm, what)) - set(getattr(source, what)), key=str)
+    if missing:
+      raise ValueError(f"variant {v.name!r} adapts {v.adapts!r}, whose runs have no {what} {missing}")
 
 
 def only(exp: Experiment, wanted: str, config: str = "") -> Experiment:
@@ -120,6 +150,8 @@ def only(exp: Experiment, wanted: str, config: str = "") -> Experiment:
   if unknown:
     raise ValueError(f"unknown variant(s) {unknown} of config {config or exp.train.preset!r}; it has: "
                      f"{', '.join(v.name for v in exp.variants) or 'none'}")
+  # an arm that adapts another's runs needs that arm (its runs are read back, or trained first)
+  names_wanted += [v.adapts for v in exp.variants if v.name in names_wanted and v.adapts]
   return dataclasses.replace(exp, variants=tuple(v for v in exp.variants if v.name in names_wanted))
 
 

@@ -42,6 +42,8 @@ REJECTED = [
     ("plug", "router_temperature", 0.0), ("plug", "router_temperature", INF), ("plug", "site", "middle"),
     ("plug", "skill_offset", "zero"), ("plug", "router_input", "zero_style"), ("model", "object_tokens", "many"),
     ("plug", "router_cue_slots", -1), ("model", "dtype", "int8"), ("model", "dtype", "float16"),
+    ("plug", "fusion_weights", "top1"), ("model", "adapter_width", -1),
+    ("model", "adapter_width", 8),  # the encoder site: no split head for it to sit before
     ("model", "hidden", 100),  # not divisible by the 8 heads
     ("model", "object_tokens", "per_object"),  # with use_images=True
     *[("loss", name, bad) for name in ("rec", "kl", "bsa", "sd", "cvae_kl", "usage", "router_label")
@@ -64,6 +66,8 @@ REJECTED = [
     ("experiment", "eval_batch", 0), ("experiment", "run_fewshot", "no"), ("experiment", "workers", 0),
     ("experiment", "variants", (Variant("a"), Variant("a"))), ("experiment", "variants", (Variant(""),)),
     ("experiment", "variants", (Variant("a/b"),)), ("experiment", "variants", (Variant(".x"),)),
+    ("experiment", "variants", (Variant("a", adapts="b"),)),  # adapts no arm of the experiment
+    ("experiment", "variants", (Variant("a"), Variant("b", adapts="a"), Variant("c", adapts="b"))),
 ]
 
 # Values at the edge of a rule that mean something and must stay allowed.
@@ -71,6 +75,7 @@ ACCEPTED = [
     ("model", "enc_layers", 0), ("model", "cvae_enc_layers", 0), ("model", "dropout", 0.0),
     ("model", "dropout", 1.0), ("model", "embed_init_std", 0.0), ("plug", "num_skills", 1),
     ("model", "dtype", "bfloat16"), ("model", "cameras", ("wrist",)), ("plug", "router_cue_slots", 0),
+    ("plug", "fusion_weights", "uniform"), ("model", "adapter_width", 0),
     *[("loss", name, 0.0) for name in ("rec", "kl", "bsa", "sd", "cvae_kl")],
     ("train", "max_steps", 0), ("train", "warmup_steps", 0), ("train", "grad_clip", 0.0),
     ("train", "grad_clip", -1.0), ("train", "weight_decay", 0.0), ("train", "trainable", ()),
@@ -182,6 +187,7 @@ def _flat_record(cfg: TrainConfig, **model_extra) -> dict:
   d = config.to_dict(cfg)
   plug = d["model"].pop("plug")
   plug["plug_site"] = plug.pop("site")
+  del plug["fusion_weights"], d["model"]["adapter_width"]  # added since (issue 43): absent, at their defaults
   d["model"].update(plug)
   d["model"].update(dict(routing="soft", fusion_source="router"), **model_extra)
   d["loss"].update(load_balance=0.0, router_z=0.0, distill=1.0)

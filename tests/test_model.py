@@ -300,7 +300,7 @@ def test_policy_shapes_and_groups(policy, images):
   cfg = tiny(policy, images)
   model, batch = Policy(cfg), make_batch(cfg)
   variables = jax.eval_shape(model.init, jax.random.key(0), batch)
-  expected = set(GROUPS) - {"action_proj"} if policy == "skillplug" else {"encoder", "cvae", "action_head"}
+  expected = set(GROUPS) - {"action_proj", "adapter"} if policy == "skillplug" else {"encoder", "cvae", "action_head"}
   assert set(variables) == {"params"} and param_groups(variables) == expected
   assert ("backbone" in variables["params"]["encoder"]) == images
   out = jax.eval_shape(lambda v: model.apply(v, batch, train=True, rngs=rngs()), variables)
@@ -440,6 +440,55 @@ def test_fixed_routing_acts_as_the_router_would(tiny_model):
     chunk, routing = router_says(k)
     np.testing.assert_array_equal(routing, jnp.broadcast_to(onehot[k], (B, K)))
     np.testing.assert_allclose(chunk, chunks[k], rtol=1e-6, atol=1e-6)
+
+
+@pytest.mark.parametrize("policy", ["act", "skillplug"])
+def test_an_adapter_starts_as_the_identity_and_adds_only_its_group(policy):
+  """The few-shot baseline's adapter (issue 43) sits before f_act of the split head: added to a
+  model, the same parameters elsewhere give the same chunk (its output layer starts at zero), and
+  its parameters are a group of their own; without a split head it is a config error."""
+  base = tiny(policy, site="decoder")
+  batch = make_batch(base)
+  params = random_params(Policy(base), batch)["params"]
+  with_adapter = dataclasses.replace(base, adapter_width=5)
+  fresh = jax.jit(lambda: Policy(with_adapter).init({"params": jax.random.key(1), **rngs()}, batch),
+                  compiler_options=FAST_COMPILE)()["params"]
+  assert set(fresh) - set(params) == {"adapter"}
+  predict = lambda cfg, p: jax.jit(lambda p: Policy(cfg).apply({"params": p}, batch, method=Policy.predict),  # noqa: E731
+                                   compiler_options=FAST_COMPILE)(p)[0]
+  np.testing.assert_array_equal(predict(base, params), predict(with_adapter, {**params, "adapter": fresh["adapter"]}))
+  rng = np.random.default_rng(0)  # a random change (a constant one the final norm would remove)
+  nudged = jax.tree.map(lambda x: x + 0.1 * rng.standard_normal(x.shape).astype(np.float32), fresh["adapter"])
+  assert not np.allclose(predict(base, params), predict(with_adapter, {**params, "adapter": nudged}))
+  with pytest.raises(ValueError, match="adapter_width"):
+    tiny(policy, adapter_width=5)  # the encoder site: no split head to sit before
+
+
+def test_the_adapter_is_the_routers_size_at_the_cpu_preset():
+  """What docs/measurements/skill_library.md states: at the cpu preset (hidden 64, K = 4) the
+  adapter of width 32 has 4,320 parameters, the router 4,420."""
+  cfg = experiment.preset("cpu", "skillplug").model
+  cfg = model_config(cfg, site="decoder", adapter_width=32)
+  p = jax.eval_shape(Policy(cfg).init, jax.random.key(0), make_batch(cfg))["params"]
+  count = lambda tree: sum(int(np.prod(x.shape)) for x in jax.tree.leaves(tree))  # noqa: E731
+  assert (count(p["adapter"]), count(p["router"])) == (4320, 4420)
+
+
+def test_uniform_fusion_weights_ignore_the_router(tiny_model):
+  """model.plug.fusion_weights='uniform' (a few-shot arm of issue 43): the u_k are weighted 1/K
+  whatever the router says, in training and at inference, and the outputs report those weights."""
+  cfg, _, batch, variables, _, _ = tiny_model
+  K = cfg.plug.num_skills
+  uniform = model_config(cfg, fusion_weights="uniform")
+  model = Policy(uniform)
+  chunk, routing = jax.jit(lambda v: model.apply(v, batch, method=Policy.predict),
+                           compiler_options=FAST_COMPILE)(variables)
+  np.testing.assert_allclose(routing, np.full((B, K), 1.0 / K))
+  given, _ = jax.jit(lambda v: Policy(cfg).apply(v, batch, jnp.full(K, 1.0 / K), method=Policy.predict),
+                     compiler_options=FAST_COMPILE)(variables)
+  np.testing.assert_allclose(chunk, given, rtol=1e-6, atol=1e-6)
+  out = jax.jit(lambda v: model.apply(v, batch, train=False), compiler_options=FAST_COMPILE)(variables)
+  np.testing.assert_allclose(out["router_probs"], np.full((B, K), 1.0 / K))
 
 
 @pytest.mark.parametrize("policy", ["skillplug", "act"])

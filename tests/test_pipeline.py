@@ -6,6 +6,7 @@ import dataclasses
 import json
 from pathlib import Path
 
+import jax
 import numpy as np
 import optax
 import pytest
@@ -384,6 +385,53 @@ def test_variants_run_in_their_own_folders_and_join_the_reference_rows(tiny_run)
   with pytest.raises(ValueError, match="distinct folder names"):
     experiment.expand(dataclasses.replace(exp, variants=(experiment.Variant("a"), experiment.Variant("a"))))
   assert pipeline.main(["--config", "loss_ablation", "--variants", "rec,nope", "--out", str(out)]) == 2
+
+
+@pytest.mark.slow
+def test_arms_that_adapt_another_arms_runs_train_none_and_fine_tune_beside_them(tiny_run):
+  """Issue 43's arms: several few-shot protocols on one arm's pretrained runs (`Variant.adapts`).
+  They train no run of their own and tabulate no multi-task row; each fine-tunes into its own
+  folder beside the source's, and each protocol is a few-shot row of its own. The router-frozen
+  arm leaves the router as pretrained, the adapter arm adds a group the source never had, and the
+  uniform arm evaluates with weights 1/K."""
+  _, ref_out, _ = tiny_run
+  dec = ("train.model.plug.site=decoder", "policies=skillplug")
+  exp = dataclasses.replace(
+      experiment.get("quick", TINY), policies=("skillplug",),
+      variants=(experiment.Variant("base", dec + ("fewshot.trainable.skillplug=action_proj,router",)),
+                experiment.Variant("frozen", dec + ("fewshot.trainable.skillplug=action_proj",), adapts="base"),
+                experiment.Variant("adapter", dec + ("fewshot.trainable.skillplug=action_proj,adapter",
+                                                     "fewshot.train_overrides=model.adapter_width=4"), adapts="base"),
+                experiment.Variant("uniform", dec + ("fewshot.trainable.skillplug=action_proj",
+                                                     "fewshot.train_overrides=model.plug.fusion_weights=uniform"),
+                                   adapts="base")))
+  out = ref_out / "adapting"
+  summary = pipeline.run(exp, out)
+  assert sorted(p.name for p in out.iterdir()) == ["base", "datasets"]
+  run = out / "base" / "runs" / "jujube_pick,drawer_open_skillplug_quick_seed0"
+  assert sorted(p.name for p in run.parent.iterdir()) == sorted(
+      [run.name] + [f"{run.name}_fewshot{s}" for s in ("", "_frozen", "_adapter", "_uniform")])
+  assert {r["variant"] for r in summary["pretrain"]["results"]} == {"base"}
+  few = {r["variant"]: r for r in summary["fewshot"]["results"]}
+  assert len(summary["fewshot"]["rows"]) == 4 and set(few) == {"base", "frozen", "adapter", "uniform"}
+  assert few["frozen"]["config"]["fewshot.trainable"] == ["action_proj"]
+  assert few["adapter"]["config"]["fewshot.train_overrides"] == ["model.adapter_width=4"]
+  rows = {v["variant"]: v["rows"] for v in summary["variants"]}
+  assert rows["frozen"]["pretrain"] is None and rows["base"]["pretrain"] is not None
+  _, before, _ = loop.load_params(run)
+  for arm, trained in (("frozen", {"action_proj"}), ("adapter", {"action_proj", "adapter"})):
+    _, after, _ = loop.load_params(Path(few[arm]["run"]))
+    assert set(after) - set(before) == ({"adapter"} if arm == "adapter" else set())
+    same = {g for g in before if all(np.array_equal(a, b) for a, b in zip(
+        jax.tree.leaves(before[g]), jax.tree.leaves(after[g])))}
+    assert set(before) - same == trained - {"adapter"}, arm
+  np.testing.assert_allclose(few["uniform"]["mean_weights"], [1 / 3] * 3, atol=2e-3)
+  assert "| frozen | " in publish.report(summary)
+  bad = dataclasses.replace(exp, variants=exp.variants[:1] + (
+      experiment.Variant("other", dec + ("train.loss.sd=0",), adapts="base"),))
+  with pytest.raises(ValueError, match="'other' adapts 'base' but trains otherwise.*loss.sd"):
+    experiment.expand(bad)
+  assert [v.name for v in experiment.only(exp, "frozen").variants] == ["base", "frozen"]
 
 
 def test_pipeline_cli_rejects_bad_configs(capsys):

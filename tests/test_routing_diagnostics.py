@@ -54,3 +54,30 @@ def test_uniform_routing_reads_as_uniform(tmp_path):
 def test_missing_index_is_named(tmp_path):
   with pytest.raises(FileNotFoundError, match="index.json"):
     rd.run_diagnostics(tmp_path)
+
+
+def test_routing_curves_read_every_logged_step_and_name_a_run_without_them(tmp_path, capsys):
+  """experiments.routing_curves (issue 43): the training log's routing statistics, step by step,
+  with the mined phase's where the run logged it; an ACT run's log (no routing) is an error."""
+  from experiments import routing_curves
+  from skillplug_jax import experiment
+  from skillplug_jax.train import run_files
+  run = tmp_path / "arm" / "runs" / "discoverse7_skillplug_cpu_seed0"
+  run_files.write_run_files(run, experiment.preset("cpu", "skillplug"), {})
+  rows = [{"step": s, "loss/rec": 1.0, "diag/routing_entropy_per_query": 1.0 - s / 1000,
+           "diag/effective_skills": 4.0 - s / 500, "diag/task_skill_mi_norm": s / 1000,
+           "diag/label_skill_mi_norm": s / 2000} for s in (100, 200, 300)]
+  (run / "metrics.jsonl").write_text("".join(json.dumps(r) + "\n" for r in rows))
+  assert routing_curves.main([str(run), "--out", str(tmp_path / "curves"), "--every", "200"]) == 0
+  out = json.loads((tmp_path / "curves.json").read_text())
+  [c] = out["curves"]
+  assert c["label"] == "arm/discoverse7_skillplug_cpu_seed0" and c["steps"] == [100, 200, 300]
+  assert c["routing_entropy_per_query"] == [0.9, 0.8, 0.7] and c["label_skill_mi_norm"] == [0.05, 0.1, 0.15]
+  md = (tmp_path / "curves.md").read_text()
+  assert "| 100 | 0.900 | 3.800 | 0.100 | 0.050 |" in md and "| 200 | 0.800 |" in md
+  assert (tmp_path / "curves.png").stat().st_size > 0
+  act = tmp_path / "act_run"
+  run_files.write_run_files(act, experiment.preset("cpu", "act"), {})
+  (act / "metrics.jsonl").write_text(json.dumps({"step": 100, "loss/rec": 1.0}) + "\n")
+  assert routing_curves.main([str(act), "--out", str(tmp_path / "x")]) == 2
+  assert "no routing diagnostics" in capsys.readouterr().err

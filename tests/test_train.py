@@ -164,6 +164,11 @@ def test_incompatible_checkpoint_and_bad_overrides(data_dir, tmp_path):
   wider = config.override(cfg, ["model.hidden=64"])
   with pytest.raises(checkpoint.CheckpointError, match="model.hidden: 32 -> 64"):
     loop.train(wider, progress=False)
+  # a fine-tune may add an adapter or fix the routing (FINE_TUNE_ADDITIONS), nothing else of the model
+  moved = fewshot.fewshot_config(cfg, cfg.run_dir, TARGET, experiment.FewShot(
+      taskset=TARGET, demos=3, steps=2, train_overrides=("model.plug.site=decoder",)))
+  with pytest.raises(checkpoint.CheckpointError, match="has a different model: plug.site: 'encoder' -> 'decoder'"):
+    loop.train(moved, progress=False)
   with pytest.raises(ValueError, match="unknown setting 'model.hiden'"):
     config.override(cfg, ["model.hiden=3"])
   with pytest.raises(ValueError, match="lr='fast'"):

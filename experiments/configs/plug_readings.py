@@ -17,6 +17,8 @@ Pretrained arms (each trains its own runs):
                 the encoder's tokens; few-shot: heavy head + router (the paper's groups)
   plug_decoder  ACT+SkillPlug on the decoder's per-step outputs (the literal reading of
                 the paper's temporal average); few-shot: light head + router
+  plug_decoder_4x  the same at 4x the steps (64k, its own cosine schedule), seed 0,
+                multi-task only: is a router that ends uniform under-trained?
 Arms that adapt another arm's runs (`Variant.adapts`: no training of their own; their
 fine-tunes go beside the source's, RUN_fewshot_<arm>/):
   act_light                   ACT, light head (action_proj) alone
@@ -56,4 +58,19 @@ def get_config() -> Experiment:
           Variant("plug_decoder", COMMON + (DECODER, "policies=skillplug",
                                             "fewshot.trainable.skillplug=action_proj,router"),
                   "ACT+SkillPlug at the decoder, light head + router"),
+          Variant("plug_decoder_4x", COMMON + (DECODER, "policies=skillplug", "seeds=0", "train.max_steps=64000",
+                                               "run_fewshot=false"),
+                  "ACT+SkillPlug at the decoder, 4x the steps (routing over training; seed 0, multi-task)"),
+          Variant("act_light", COMMON + (DECODER, "policies=act", "fewshot.trainable.act=action_proj"),
+                  "ACT, light head", adapts="act"),
+          Variant("act_adapter", COMMON + (DECODER, "policies=act", "fewshot.trainable.act=action_proj,adapter",
+                                           "fewshot.train_overrides=model.adapter_width=32"),
+                  "ACT, light head + adapter of the router's size (ours)", adapts="act"),
+          Variant("plug_decoder_frozen_router", COMMON + (DECODER, "policies=skillplug",
+                                                          "fewshot.trainable.skillplug=action_proj"),
+                  "ACT+SkillPlug at the decoder, light head (router frozen)", adapts="plug_decoder"),
+          Variant("plug_decoder_uniform", COMMON + (DECODER, "policies=skillplug",
+                                                    "fewshot.trainable.skillplug=action_proj",
+                                                    "fewshot.train_overrides=model.plug.fusion_weights=uniform"),
+                  "ACT+SkillPlug at the decoder, light head, uniform routing", adapts="plug_decoder"),
       ))

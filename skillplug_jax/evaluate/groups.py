@@ -71,16 +71,20 @@ def training_key(cfg: train_config.TrainConfig) -> dict:
 
 def normalised(key: Mapping[str, Any]) -> dict:
   """A training key recorded by an older version, as today's code would write it: settings added
-  since take the values that reproduce what was trained (`train.config.from_dict`)."""
+  since take the values that reproduce what was trained (`train.config.from_dict`). A few-shot
+  result's protocol fields (`fewshot.*`, `experiments.pipeline.protocol_fields`) stay as they are."""
+  protocol = {k: v for k, v in key.items() if k.startswith("fewshot.")}
   nested: dict = {}
   for name, value in key.items():
+    if name in protocol:
+      continue
     *parents, leaf = name.split(".")
     d = nested
     for part in parents:
       d = d.setdefault(part, {})
     d[leaf] = value
   nested.setdefault("loss", {})
-  return training_key(train_config.from_dict(nested))
+  return {**training_key(train_config.from_dict(nested)), **protocol}
 
 
 def normalised_result(r: Mapping[str, Any]) -> dict:

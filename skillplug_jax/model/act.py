@@ -236,3 +236,17 @@ class ActionProjection(nn.Module):
   @nn.compact
   def __call__(self, x: jnp.ndarray) -> jnp.ndarray:
     return project_actions(self.config, x)
+
+
+class Adapter(nn.Module):
+  """Ours (issue 43): a residual bottleneck before f_act, d + W2 relu(W1 LN(d)), for a few-shot
+  baseline that tunes as many parameters as the plug's router (`ModelConfig.adapter_width`).
+  W2 starts at zero, so a fine-tune that adds it starts from its source's function."""
+  config: ModelConfig
+
+  @nn.compact
+  def __call__(self, x: jnp.ndarray) -> jnp.ndarray:
+    cfg, dt = self.config, self.config.compute_dtype
+    y = nn.LayerNorm(dtype=dt, name="norm")(x)
+    y = nn.relu(nn.Dense(cfg.adapter_width, dtype=dt, name="down")(y))
+    return x + nn.Dense(x.shape[-1], dtype=dt, kernel_init=nn.initializers.zeros, name="up")(y)

@@ -38,7 +38,11 @@ LEGACY_PLUG_FIELDS = dict(num_skills="num_skills", skill_latent_dim="skill_laten
 # Their results keep the commit that made them (docs/training.md).
 REMOVED_ARMS = {"model.routing": "soft", "model.fusion_source": "router", "loss.load_balance": 0.0,
                 "loss.router_z": 0.0}
-REMOVED_AT = "5dddeed"  # the last commit with those arms, router_input='zero_style' and dtype='float16'
+REMOVED_AT = "5dddeed"
+# What a few-shot fine-tune may change in its source's model (dotted, under `model.`), at its
+# source's value when the source has none: an adapter added with its output at zero, and routing
+# replaced by fixed weights. Parameter groups they add start from their initialisation.
+FINE_TUNE_ADDITIONS = {"adapter_width": 0, "plug.fusion_weights": "router"}  # the last commit with those arms, router_input='zero_style' and dtype='float16'
 
 
 _count, _number, _one_of = validation.count, validation.number, validation.one_of
@@ -54,13 +58,16 @@ _RULES = dict(
     cvae_zero_init=validation.flag(), normalize_object_state=validation.flag(), latent_dim=_count(1),
     cvae_enc_layers=_count(0), backbone_width=_count(1),
     backbone_stages=validation.each(_count(1), nonempty=True), object_tokens=_one_of(OBJECT_TOKENS),
-    dtype=_one_of(DTYPES))
+    adapter_width=_count(0), dtype=_one_of(DTYPES))
 _RELATIONS = (
     validation.Relation("hidden", lambda c: c.hidden % c.heads == 0,
                         lambda c: f"divisible by heads ({c.heads})"),
     validation.Relation("object_tokens", lambda c: not (c.use_images and c.object_tokens == "per_object"),
                         lambda c: "'one' for an image policy (it never reads the object state; "
                                   "'per_object' is for the state-only variant, use_images=False)"),
+    validation.Relation("adapter_width", lambda c: not c.adapter_width or c.split_head,
+                        lambda c: "0 unless model.plug.site='decoder' (the adapter sits before f_act, the "
+                                  "split head's action_proj)"),
 )
 
 
@@ -114,6 +121,10 @@ class ModelConfig:
   # or one token 'per_object' (a shared MLP of each object's 7 numbers plus a
   # learned per-slot position: act.py).
   object_tokens: str = "one"
+  # Ours (issue 43): > 0 adds a residual bottleneck of this width before f_act (group 'adapter',
+  # model/act.py's Adapter), with plug.site='decoder'; a few-shot fine-tune may add it to a source
+  # that has none (`FINE_TUNE_ADDITIONS`). 32 at hidden 64: 4,320 parameters, the router's 4,420.
+  adapter_width: int = 0
   plug: PlugConfig = PlugConfig()
   dtype: str = "float32"  # compute dtype ('bfloat16' on GPUs); params stay float32
 

@@ -13,7 +13,7 @@ import jax
 import optax
 
 GROUPS = ("encoder", "cvae", "skills", "interactor", "router", "posterior", "action_head",
-          "action_proj")  # action_proj: only with PlugConfig.site="decoder"
+          "action_proj", "adapter")  # action_proj: only with PlugConfig.site="decoder"; adapter: adapter_width > 0
 
 
 def _groups_tree(params: Mapping[str, Any]) -> Mapping[str, Any]:

@@ -36,12 +36,13 @@ from skillplug_jax.model.skills import SkillLibrary
 SITES = ("encoder", "decoder")
 SKILL_OFFSETS = ("sample", "mean", "none")
 ROUTER_INPUTS = ("all", "no_style")
+FUSION_WEIGHTS = ("router", "uniform")
 
 _count, _one_of = validation.count, validation.one_of
 _RULES = dict(num_skills=_count(1), skill_latent_dim=_count(1), alignment_dim=_count(1),
               interactor=_one_of(INTERACTORS), router_temperature=validation.number(above=0),
               site=_one_of(SITES), skill_offset=_one_of(SKILL_OFFSETS), router_input=_one_of(ROUTER_INPUTS),
-              router_cue_slots=_count(0))
+              router_cue_slots=_count(0), fusion_weights=_one_of(FUSION_WEIGHTS))
 
 
 @dataclasses.dataclass(frozen=True)
@@ -76,6 +77,10 @@ class PlugConfig:
   # docs/measurements/skill_library.md). 0: the paper's (both read everything). ACT, which has
   # no router, reads everything either way.
   router_cue_slots: int = 0
+  # What weighs the u_k: the 'router' (the paper), or 'uniform' 1/K whatever the router says (ours,
+  # issue 43: a few-shot arm that asks whether the routing matters; its router still runs, and its
+  # outputs report the weights used).
+  fusion_weights: str = "router"
 
   def __post_init__(self):
     validation.check(self, "model.plug.", _RULES)
@@ -117,6 +122,8 @@ class SkillPlug(nn.Module):
     if routing is None:
       routing, logits = self.router(scene[:, 1:] if plug.router_input == "no_style" else scene,
                                     with_logits=True, cue=cue)
+      if plug.fusion_weights == "uniform":
+        routing, logits = jnp.full_like(routing, 1.0 / plug.num_skills), jnp.zeros_like(logits)
       out.update(router_probs=routing, router_logits=logits)
     routing = jnp.broadcast_to(jnp.asarray(routing, jnp.float32), (batch, plug.num_skills))
     fused = jnp.einsum("bk,bknd->bnd", routing.astype(u.dtype), u)  # h~ = sum_k r_k u_k

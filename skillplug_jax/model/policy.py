@@ -14,6 +14,8 @@ masks by name):
   action_head  decoder queries, decoder, action projection (f_act)
   action_proj  with plug.site='decoder' only (both policies): the final norm
                and action projection leave action_head and are f_act alone
+  adapter      with adapter_width > 0 only (ours): a residual bottleneck before
+               f_act, added by a few-shot fine-tune (issue 43's baseline)
 
 Where the plug sits (`PlugConfig.site`). 'encoder' (the default):
 h~ = sum_k r_k Interactor(h, s_k) over the encoder's scene tokens, decoded by
@@ -35,7 +37,7 @@ from typing import Mapping, Optional
 import flax.linen as nn
 import jax.numpy as jnp
 
-from skillplug_jax.model.act import OBJECT_SLOT_DIM, ActionHead, ActionProjection, CVAEEncoder, Encoder
+from skillplug_jax.model.act import OBJECT_SLOT_DIM, ActionHead, ActionProjection, Adapter, CVAEEncoder, Encoder
 from skillplug_jax.model.config import ModelConfig
 from skillplug_jax.model.plug import SkillPlug
 from skillplug_jax.model.posterior import reparameterise
@@ -51,6 +53,8 @@ class Policy(nn.Module):
     self.action_head = ActionHead(cfg, project=not cfg.split_head)
     if cfg.split_head:
       self.action_proj = ActionProjection(cfg)
+    if cfg.adapter_width:
+      self.adapter = Adapter(cfg)
     if cfg.is_skillplug:
       self.plug = SkillPlug(cfg)
       nn.share_scope(self, self.plug)  # its groups (skills, interactor, router, posterior) stay top-level
@@ -124,7 +128,7 @@ class Policy(nn.Module):
   def act(self, h, pos=None, train: bool = False):
     """The decoder without the plug: tokens [B, N, hidden] (and positions) -> action chunk [B, chunk, A]."""
     if self.config.split_head:
-      return self.action_proj(self.action_head(h, pos, not train)[0])
+      return self._project(self.action_head(h, pos, not train)[0])
     return self.action_head(h, pos, not train)
 
   def _plug_input(self, h, pos, deterministic):
@@ -136,8 +140,12 @@ class Policy(nn.Module):
   def _actions(self, fused, pos, deterministic):
     """f_act of the fused feature."""
     if self.config.split_head:
-      return self.action_proj(fused)
+      return self._project(fused)
     return self.action_head(fused, pos, deterministic)
+
+  def _project(self, d):
+    """f_act of decoder steps d [B, chunk, D] (split head), through the adapter where there is one."""
+    return self.action_proj(self.adapter(d) if self.config.adapter_width else d)
 
   def _split_cue(self, obs):
     """(obs with the router's cue zeroed, the cue [B, slots * 7]) under

@@ -36,6 +36,7 @@ from skillplug_jax import dir_lock, losses
 from skillplug_jax.data import demos as demo_data
 from skillplug_jax.data import loader as data_loader
 from skillplug_jax.data import segments
+from skillplug_jax.model import config as model_config
 from skillplug_jax.model import freeze
 from skillplug_jax.model.policy import Policy
 from skillplug_jax.train import checkpoint, preemption, run_files
@@ -145,6 +146,31 @@ def make_train_step(cfg: TrainConfig, tx: optax.GradientTransformation, key: jax
   return train_step
 
 
+def params_from_source(cfg: TrainConfig, params):
+  """A fine-tune's starting parameters: its source run's (`cfg.init_from`), plus `params`' (its own
+  initialisation) for the groups a fine-tune may add (`model.config.FINE_TUNE_ADDITIONS`: the
+  adapter). Any other difference between the two models is an error that names it."""
+  src_cfg = run_files.read_config(cfg.init_from)
+  diffs = [d for d in run_files.config_differences(src_cfg.model, cfg.model)
+           if not _fine_tune_addition(d, src_cfg.model)]
+  if diffs:
+    raise checkpoint.CheckpointError(f"{cfg.init_from} has a different model: {'; '.join(diffs)}")
+  groups = jax.eval_shape(lambda: init_params(src_cfg, jax.random.PRNGKey(0))).keys()
+  _, loaded, _ = load_params(cfg.init_from, like={k: v for k, v in params.items() if k in groups})
+  return {**params, **loaded}
+
+
+def _fine_tune_addition(diff: str, source) -> bool:
+  """Whether a `config_differences` line is a change a fine-tune may make to its source's model."""
+  name = diff.split(":")[0]
+  if name not in model_config.FINE_TUNE_ADDITIONS:
+    return False
+  value = source
+  for part in name.split("."):
+    value = getattr(value, part)
+  return value == model_config.FINE_TUNE_ADDITIONS[name]
+
+
 def load_params(run_dir: str | Path, like=None):
   """(cfg, params, step) of a run's latest checkpoint (shapes checked against `like` if given).
 
@@ -210,10 +236,7 @@ def _train(cfg: TrainConfig, progress: bool, stop_after: int | None, record: Run
   init_key, step_key = jax.random.split(key)
   params = init_params(cfg, init_key)
   if cfg.init_from:  # few-shot: start from a multi-task run's parameters
-    src_cfg, params, _ = load_params(cfg.init_from, like=params)
-    diffs = run_files.config_differences(src_cfg.model, cfg.model)
-    if diffs:
-      raise checkpoint.CheckpointError(f"{cfg.init_from} has a different model: {'; '.join(diffs)}")
+    params = params_from_source(cfg, params)
   tx = optimizer(cfg, params, total)
   state = TrainState(jnp.zeros((), jnp.int32), params, tx.init(params))
   state = jax.device_put(state, replicated)

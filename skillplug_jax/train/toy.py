@@ -163,11 +163,7 @@ def train(cfg: TrainConfig, progress: bool = True, record: RunRecord | None = No
       data = data_of(cfg)
       init_key, step_key = jax.random.split(jax.random.PRNGKey(cfg.seed))
       if cfg.init_from:  # few-shot: start from a multi-task run's parameters
-        like = jax.eval_shape(lambda: loop.init_params(cfg, init_key))
-        src_cfg, params, _ = loop.load_params(cfg.init_from, like=like)
-        diffs = run_files.config_differences(src_cfg.model, cfg.model)
-        if diffs:
-          raise checkpoint.CheckpointError(f"{cfg.init_from} has a different model: {'; '.join(diffs)}")
+        params = loop.params_from_source(cfg, _init(_shared(cfg))(init_key))
       else:
         params = _init(_shared(cfg))(init_key)
       if (run_dir / run_files.CONFIG_FILE).exists():  # restarted: it keeps the record it started with
