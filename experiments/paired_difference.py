@@ -6,7 +6,9 @@ trial and seed for seed: what issue 27 asks to report beside each variant.
 FILE is an evaluation or few-shot JSON (`skillplug eval/fewshot --out`) or a
 pipeline summary.json; SECTION picks `pretrain` or `fewshot` in a summary.
 `--match-a/--match-b` keep the results whose run directory contains the
-text (one arm of a summary holding several). Trial i of a task is the same
+text (one arm of a summary holding several); `--variant-a/--variant-b` those
+of one variant of a summary (its `variant` field: arms that adapt another's
+runs share that arm's run directories). Trial i of a task is the same
 start in both arms (the evaluation seed fixes it), and seed s of one arm is
 paired with seed s of the other.
 
@@ -33,21 +35,22 @@ from skillplug_jax.atomic_json import write_json_atomic, write_text_atomic
 from skillplug_jax.evaluate.tables import mean_se
 
 
-def load_arm(spec: str, match: str = "") -> dict:
+def load_arm(spec: str, match: str = "", variant: str = "") -> dict:
   """{(seed, task): trial_success array} of one arm, from FILE[:SECTION]."""
   path, _, section = spec.partition(":")
   data = json.loads(Path(path).read_text())
   results = data[section]["results"] if section else data["results"]
   arm = {}
   for r in results:
-    if match and match not in str(r.get("run", "")):
+    if (match and match not in str(r.get("run", ""))) or (variant and r.get("variant") != variant):
       continue
     key = (int(r.get("train_seed", 0)), r["task"])
     if key in arm:
       raise ValueError(f"{spec}: two results for seed {key[0]} on {key[1]}; narrow them with --match")
     arm[key] = np.asarray(r["trial_success"], float)
   if not arm:
-    raise ValueError(f"{spec}: no results" + (f" whose run contains {match!r}" if match else ""))
+    raise ValueError(f"{spec}: no results" + (f" whose run contains {match!r}" if match else "")
+                     + (f" of variant {variant!r}" if variant else ""))
   return arm
 
 
@@ -95,16 +98,19 @@ def main(argv=None) -> int:
   p.add_argument("--b", required=True, help="FILE[:SECTION] of arm B")
   p.add_argument("--match-a", default="", help="keep A's results whose run directory contains this")
   p.add_argument("--match-b", default="", help="keep B's results whose run directory contains this")
+  p.add_argument("--variant-a", default="", help="keep A's results of this variant (a summary's)")
+  p.add_argument("--variant-b", default="", help="keep B's results of this variant")
   p.add_argument("--label-a", default="A")
   p.add_argument("--label-b", default="B")
   p.add_argument("--out", required=True, help="write OUT.json and OUT.md")
   args = p.parse_args(argv)
   try:
-    d = paired_difference(load_arm(args.a, args.match_a), load_arm(args.b, args.match_b))
+    d = paired_difference(load_arm(args.a, args.match_a, args.variant_a),
+                          load_arm(args.b, args.match_b, args.variant_b))
   except (ValueError, KeyError, FileNotFoundError) as e:
     p.error(str(e))
-  d.update(a=dict(spec=args.a, match=args.match_a, label=args.label_a),
-           b=dict(spec=args.b, match=args.match_b, label=args.label_b))
+  d.update(a=dict(spec=args.a, match=args.match_a, variant=args.variant_a, label=args.label_a),
+           b=dict(spec=args.b, match=args.match_b, variant=args.variant_b, label=args.label_b))
   text = markdown(d, args.label_a, args.label_b)
   write_json_atomic(Path(f"{args.out}.json"), d)
   write_text_atomic(Path(f"{args.out}.md"), text)

@@ -50,6 +50,17 @@ def test_a_summary_section_and_a_run_filter_pick_one_arm(tmp_path):
     pd.load_arm(spec, "nothing")
 
 
+def test_a_variant_filter_picks_one_of_the_protocols_on_the_same_runs(tmp_path):
+  """Arms that adapt another's runs (Variant.adapts) share its run folders: the variant tells them."""
+  results = [dict(_result("out/act/runs/r_seed0_fewshot/x", 0, "x", [True, False]), variant="act"),
+             dict(_result("out/act/runs/r_seed0_fewshot_act_light/x", 0, "x", [False, False]), variant="act_light")]
+  spec = _write(tmp_path / "summary.json", results, section="fewshot")
+  assert pd.load_arm(spec, variant="act_light")[(0, "x")].tolist() == [0.0, 0.0]
+  assert pd.load_arm(spec, "act/runs", variant="act")[(0, "x")].tolist() == [1.0, 0.0]
+  with pytest.raises(ValueError, match="no results of variant 'act_lite'"):
+    pd.load_arm(spec, variant="act_lite")
+
+
 def test_unpaired_inputs_are_refused_by_name(tmp_path):
   a = pd.load_arm(_write(tmp_path / "a.json", [_result("a", 0, "x", [True, False])]))
   b = pd.load_arm(_write(tmp_path / "b.json", [_result("b", 0, "x", [True, False, True])]))
