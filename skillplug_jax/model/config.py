@@ -38,7 +38,7 @@ LEGACY_PLUG_FIELDS = dict(num_skills="num_skills", skill_latent_dim="skill_laten
 # Their results keep the commit that made them (docs/training.md).
 REMOVED_ARMS = {"model.routing": "soft", "model.fusion_source": "router", "loss.load_balance": 0.0,
                 "loss.router_z": 0.0}
-REMOVED_AT = "5dddeed"
+REMOVED_AT = "5dddeed"  # the last commit with those arms, router_input='zero_style' and dtype='float16'
 # What a few-shot fine-tune may change in its source's model (dotted, under `model.`), at its
 # source's value when the source has none: an adapter added with its output at zero, and routing
 # replaced by fixed weights. Parameter groups they add start from their initialisation.
