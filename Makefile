@@ -21,7 +21,7 @@ export MUJOCO_GL ?= egl
 # contention doubled the quick preset's step.) docs/measurements/speed.md.
 export GLIBC_TUNABLES ?= glibc.malloc.hugetlb=1
 
-.PHONY: install test test-fast quickstart toy-skills paper-cpu paper-cpu-image loss-ablation k-sweep plug-readings notebooks experts demos pretrain fewshot eval bench-envs bench-loader bench-train bench-eval bench-eval-scale bench soak scenes clean
+.PHONY: install test test-fast test-libero quickstart toy-skills paper-cpu paper-cpu-image loss-ablation k-sweep plug-readings notebooks experts demos pretrain fewshot eval bench-envs bench-loader bench-train bench-eval bench-eval-scale bench soak scenes clean
 
 install: $(VENV)/.installed
 
@@ -39,11 +39,16 @@ $(VENV)/.installed: pyproject.toml requirements-libero.txt
 # Two pytest-xdist workers, a test file at a time on each: a file's module
 # fixtures (datasets, trained runs) and compiled programs are made once.
 test: install
-	$(PY) -m pytest -q -n 2 --dist loadfile tests
+	$(PY) -m pytest -q -n 2 --dist loadfile -m "not sweep" tests
 
 # The inner loop: the same, less the tests marked slow (subprocesses, training, simulated devices).
 test-fast: install
-	$(PY) -m pytest -q -n 2 --dist loadfile -m "not slow" tests
+	$(PY) -m pytest -q -n 2 --dist loadfile -m "not slow and not sweep" tests
+
+# LIBERO's sweep: every task of the four suites against LIBERO's own env (the default run
+# checks one task per suite): scenes, init states, goal predicates, controller rollouts.
+test-libero: install
+	$(PY) -m pytest -q -n 2 --dist load -m sweep tests/test_libero.py tests/test_libero_engine.py
 
 # The main job on a CPU: demos, quick pretraining of ACT and ACT+SkillPlug,
 # closed-loop evaluation, few-shot adaptation, success tables (experiments/quickstart.py).

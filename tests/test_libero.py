@@ -6,7 +6,7 @@ hair either side of each threshold, so that a predicate with a threshold off is 
 
 A reference env takes 7-12 s to build: one per task, module-scoped. The default run checks one
 task per suite (their goals use every test: on an object, on a region with and without a parent,
-in a region, a switch); the rest of the four suites are marked slow.
+in a region, a switch); the rest of the four suites are marked `sweep` (`make test-libero`).
 """
 
 from __future__ import annotations
@@ -378,9 +378,21 @@ def test_batched_goal_matches_one_at_a_time(judged):
     worlds.append(np.full(c.data.ncon, w))
   touch = predicates.touching(c.goal, np.concatenate(geoms), np.concatenate(worlds), batch=nbatch)
   assert np.array_equal(touch, batch.touching)
+  # The C batch lists no contacts: the engine's model counts them with touch sensors instead.
+  sensed = scene.model(c.scene, sensors=predicates.touch_sensor_xml(c.scene, c.model))
+  for name in ("body_pos", "geom_size", "geom_contype", "dof_damping", "actuator_gainprm", "nq", "nv", "ngeom"):
+    assert np.array_equal(getattr(sensed, name), getattr(c.model, name)), name
+  goal = predicates.compile_goal(c.scene, sensed)
+  assert goal.groups == c.goal.groups and (len(goal.touch_sensors) > 0) == any(a.touch[0] >= 0 for a in goal.atoms)
+  d = mujoco.MjData(sensed)
+  for q, single in zip(judged.qpos, singles):
+    d.qpos[:], d.qvel[:] = q, 0.0
+    mujoco.mj_forward(sensed, d)
+    assert np.array_equal(predicates.touching_from_sensors(goal, d.sensordata[None]), single.touching)
+  assert batch.touching.any() or not len(goal.touch_sensors)  # the states include touching ones
 
 
-@pytest.mark.slow
+@pytest.mark.sweep
 @pytest.mark.parametrize("suite,index", SLOW, ids=[f"{s}-{i}" for s, i in SLOW])
 def test_every_other_task_of_the_four_suites(suite, index):
   case = make_case(suite, index)

@@ -76,6 +76,9 @@ class Goal:
   atoms: tuple[Atom, ...]
   groups: tuple[str, ...]  # objects whose contact geoms a test reads
   geom_group: np.ndarray  # [ngeom] int: a geom's index in `groups`, -1 if none
+  # Where the model has our touch sensors (`touch_sensor_xml`): [S, 3] int rows of
+  # (sensordata address, group, group), one per geom pair that can collide; else empty.
+  touch_sensors: np.ndarray = dataclasses.field(default_factory=lambda: np.zeros((0, 3), np.int64))
 
 
 class GoalInputs(NamedTuple):
@@ -158,7 +161,68 @@ def compile_goal(scene, model: mujoco.MjModel) -> Goal:
       if geom_group[gid] >= 0:
         raise ValueError(f"geom {geom} belongs to both {groups[geom_group[gid]]} and {name}")
       geom_group[gid] = g
-  return Goal(tuple(atoms), tuple(groups), geom_group)
+  sensors = []
+  for i in range(model.nsensor):
+    name = mujoco.mj_id2name(model, mujoco.mjtObj.mjOBJ_SENSOR, i) or ""
+    if name.startswith(TOUCH_SENSOR):
+      a, b = int(model.sensor_objid[i]), int(model.sensor_refid[i])
+      sensors.append((int(model.sensor_adr[i]), geom_group[a], geom_group[b]))
+  return Goal(tuple(atoms), tuple(groups), geom_group, np.asarray(sensors, np.int64).reshape(-1, 3))
+
+
+TOUCH_SENSOR = "skillplug_touch_"  # prefix of the contact sensors `touch_sensor_xml` adds
+
+
+def _touch_pairs(meta: dict) -> list[tuple[str, str]]:
+  """The (object, object) pairs whose contact a goal atom tests, as compile_goal pairs them."""
+  objects, regions = meta["objects"], meta["regions"]
+  pairs = []
+  for atom in meta["goal"]:
+    predicate, args = atom[0], tuple(atom[1:])
+    if predicate == "on" and args[1] in regions and regions[args[1]]["parent"] is not None:
+      pairs.append((regions[args[1]]["parent"], args[0]))
+    elif predicate == "on" and args[1] in objects:
+      pairs.append((args[1], args[0]))
+  return pairs
+
+
+def _can_collide(model: mujoco.MjModel, a: int, b: int) -> bool:
+  """MuJoCo's contype/conaffinity filter (the only way LIBERO's scenes make contacts: no <pair>)."""
+  return bool((model.geom_contype[a] & model.geom_conaffinity[b]) or (model.geom_contype[b] & model.geom_conaffinity[a]))
+
+
+def touch_sensor_xml(scene, model: mujoco.MjModel) -> str:
+  """A <sensor> section of MuJoCo contact sensors, one per pair of contact geoms of the goal's
+  touching objects that can collide, each counting that pair's contacts (data="found"). The
+  C batch does not list contacts; these read them inside the physics, as a position-stage
+  sensor, and change nothing else of the model. A scene without contact tests gets none."""
+  if model.npair or model.nexclude:
+    raise NotImplementedError("the scene has explicit <pair> or <exclude> elements, which touch sensors "
+                              "filtered by contype/conaffinity do not model")
+  objects = scene.meta["objects"]
+  lines, seen = [], set()
+  for first, second in _touch_pairs(scene.meta):
+    for ga in objects[first]["contact_geoms"]:
+      for gb in objects[second]["contact_geoms"]:
+        a, b = (_id(model, mujoco.mjtObj.mjOBJ_GEOM, g) for g in (ga, gb))
+        if (ga, gb) in seen or not _can_collide(model, a, b):
+          continue
+        seen.add((ga, gb))
+        lines.append(f'<contact name="{TOUCH_SENSOR}{len(lines)}" geom1="{ga}" geom2="{gb}" data="found" num="1"/>')
+  return "<sensor>" + "".join(lines) + "</sensor>" if lines else ""
+
+
+def touching_from_sensors(goal: Goal, sensordata: np.ndarray) -> np.ndarray:
+  """[B, G, G] bool: which of the goal's contact groups touch, from our touch sensors' counts."""
+  out = np.zeros((len(sensordata), len(goal.groups), len(goal.groups)), dtype=bool)
+  if len(goal.touch_sensors):
+    adr, a, b = goal.touch_sensors.T
+    hit = np.asarray(sensordata)[:, adr] > 0  # [B, S]
+    for ga, gb in set(zip(a.tolist(), b.tolist())):  # over the goal's touching pairs, a few
+      any_hit = hit[:, (a == ga) & (b == gb)].any(axis=1)
+      out[:, ga, gb] |= any_hit
+      out[:, gb, ga] |= any_hit
+  return out
 
 
 def touching(goal: Goal, geom_pairs: np.ndarray, world: np.ndarray | None = None, batch: int = 1) -> np.ndarray:

@@ -30,10 +30,10 @@ from pathlib import Path
 import mujoco
 import numpy as np
 
-from envs.libero import suites
+from envs.libero import controller, suites
 from envs.libero.installed import libero_module, provenance
 
-FORMAT = 1  # of the cached metadata; a change rebuilds every scene
+FORMAT = 2  # of the cached metadata; a change rebuilds every scene (2: the controller's parameters)
 CAMERAS = ("agentview", "robot0_eye_in_hand")  # LIBERO's evaluation cameras
 CAMERA_SIZE = 128  # LIBERO's default; the MJCF does not depend on it
 FIXTURE_SEED = 0  # env.seed(0) then env.reset(), as LIBERO's evaluations start
@@ -187,6 +187,7 @@ def describe(env, task: suites.Task) -> tuple[str, dict]:
     "robot": {"eef_site": robot.controller.eef_name, "arm_joints": _joints(ours, robot.robot_joints),
               "gripper_joints": _joints(ours, robot.gripper.joints),
               "init_qpos": [float(v) for v in robot.init_qpos]},
+    "controller": controller.params_of(env),
     "objects": objects, "regions": regions,
     "obj_of_interest": list(parsed["obj_of_interest"]), "goal": [list(atom) for atom in parsed["goal_state"]]})
   return xml, meta
@@ -234,10 +235,16 @@ def scene(suite: str, which: int | str, cache: Path | None = None) -> Scene:
   return cached(suite, which, cache) or build_scene(suite, which, cache)
 
 
-def model(s: Scene) -> mujoco.MjModel:
-  """The scene's `MjModel` (mujoco 4.0.0; 0.2-0.3 s): the reference environment's model, bit for bit."""
+def model(s: Scene, sensors: str = "") -> mujoco.MjModel:
+  """The scene's `MjModel` (mujoco 4.0.0; 0.2-0.3 s): the reference environment's model, bit for bit;
+  with `sensors` (a <sensor> section: `predicates.touch_sensor_xml`) added, which changes
+  nothing but the model's sensors."""
+  xml = s.xml_path.read_text()
+  if sensors:
+    end = xml.rindex("</mujoco>")
+    xml = xml[:end] + sensors + xml[end:]
   try:
-    m = mujoco.MjModel.from_xml_string(s.xml_path.read_text())
+    m = mujoco.MjModel.from_xml_string(xml)
   except ValueError as e:
     raise RuntimeError(f"the cached scene {s.xml_path} does not load (its asset paths point into the LIBERO "
                        f"installation it was built from; delete it to rebuild): {e}") from e

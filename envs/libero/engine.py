@@ -1,0 +1,162 @@
+"""A batch of one LIBERO task on MuJoCo's C engine (`mujoco.batch`), driven by LIBERO's actions.
+
+B copies of a task's scene step together on a thread pool. Each control step (20 Hz) sets the
+OSC goal from the 7-D actions, then runs the scene's 25 physics substeps one batched `mj_step`
+at a time, with the controller's torques and the gripper's targets recomputed for the whole
+batch between substeps from the arrays the engine returns (`envs.libero.controller`, numpy in
+float64): what robosuite does for one env, for B at once and with no Python loop over them.
+
+The batch is persistent: each simulation keeps its MjData, and every substep ends with the
+position and velocity stages computed at the new state (`stage=mjSTAGE_VEL`), which the
+controller reads and the next substep continues from.
+"""
+
+from __future__ import annotations
+
+import mujoco
+import numpy as np
+from mujoco import batch as mj_batch
+
+from envs.libero import controller as osc
+from envs.libero import predicates
+from envs.libero import scene as scenes
+
+ACTION_SIZE = 7  # LIBERO's: end-effector delta position (3), delta axis-angle (3), gripper (1)
+_BOUND = ("qpos", "qvel", "ctrl", "time", "site_xpos", "site_xmat", "xpos", "xquat", "xmat", "xaxis",
+          "xanchor", "M", "qfrc_bias", "sensordata")
+# What robosuite's observations and LIBERO's _check_success read of positions and contacts after a
+# step: MjData's derived fields after mj_step, which describe the state before its last substep.
+_BEFORE_LAST = ("xpos", "xquat", "xmat", "site_xpos", "site_xmat", "sensordata")
+
+
+def _mass_index(model: mujoco.MjModel, dofs) -> np.ndarray:
+  """[n, n] positions in MjData.M (CSR, lower triangle) of the joint-space inertia's block on `dofs`."""
+  n = len(dofs)
+  index = np.zeros((n, n), np.int64)
+  for a, i in enumerate(dofs):
+    for b, j in enumerate(dofs):
+      row, col = max(i, j), min(i, j)
+      start = model.M_rowadr[row]
+      cols = model.M_colind[start:start + model.M_rownnz[row]]
+      hit = np.flatnonzero(cols == col)
+      if hit.size != 1:
+        raise RuntimeError(f"dofs {row} and {col} have no shared entry in the mass matrix: not one kinematic chain")
+      index[a, b] = start + hit[0]
+  return index
+
+
+class LiberoBatch:
+  """`num_envs` copies of a LIBERO task's scene (`envs.libero.scene`), reset from benchmark init
+  states and stepped with LIBERO actions [B, 7]; on `nthread` threads (0: every core)."""
+
+  def __init__(self, scene: scenes.Scene, num_envs: int, nthread: int = 0):
+    if "controller" not in scene.meta:
+      raise ValueError(f"scene {scene.xml_path} has no controller parameters: built by an older scene.py")
+    self.scene = scene
+    self.model = scenes.model(scene, sensors=predicates.touch_sensor_xml(scene, scenes.model(scene)))
+    self.goal = predicates.compile_goal(scene, self.model)
+    self.num_envs = num_envs
+    self.params = osc.params(scene.meta)
+    self._batch = mj_batch.Batch(self.model, nsim=num_envs, nthread=nthread, persistent=True)
+    self._a = {f: self._batch.bind(f) for f in _BOUND}
+    joints = [self.model.joint(j["name"]).id for j in scene.meta["robot"]["arm_joints"]]
+    if [int(self.model.jnt_dofadr[j]) for j in joints] != list(self.params.arm_dofs) or \
+        any(self.model.jnt_type[j] != mujoco.mjtJoint.mjJNT_HINGE for j in joints):
+      raise RuntimeError("the arm's joints are not the controller's hinge dofs")
+    self._arm_joints = np.asarray(joints)
+    self._mass = _mass_index(self.model, self.params.arm_dofs)
+    self._control = None
+    self._stale = None  # [B] bool: the controller still holds the reset pose's reading (controller.py)
+    self._reset_arm = self._reset_pose_reading()
+
+  def _reset_pose_reading(self) -> osc.ArmState:
+    """What robosuite's controller has cached when set_init_state returns: the robot at its reset pose
+    (arm at `initial_joint`, fingers at their initial qpos, at rest). It depends on the robot's
+    joints alone (the robot is its own kinematic tree), so the other joints stay at qpos0."""
+    p = self.params
+    d = mujoco.MjData(self.model)
+    d.qpos[list(p.arm_qpos)] = p.initial_joint
+    grip = [j["qposadr"] for j in self.scene.meta["robot"]["gripper_joints"]]
+    d.qpos[grip] = p.gripper_init_qpos
+    mujoco.mj_forward(self.model, d)
+    return self._reading({f: getattr(d, f)[None] for f in _BOUND if f not in ("time", "ctrl")})
+
+  def reset(self, states: np.ndarray) -> None:
+    """Put environment i in LIBERO state `states[i]` (time, qpos, qvel; `suites.init_states`), as
+    LIBERO's set_init_state after env.reset(): the controller's goal and gripper as a reset leaves them."""
+    time, qpos, qvel = scenes.split_states(states, self.model.nq, self.model.nv)
+    if qpos.shape[0] != self.num_envs:
+      raise ValueError(f"got {qpos.shape[0]} states for {self.num_envs} environments")
+    self._batch.reset(stage=mujoco.mjtStage.mjSTAGE_NONE)
+    self._a["time"][:] = time
+    self._a["qpos"][:] = qpos
+    self._a["qvel"][:] = qvel
+    self._batch.forward()
+    self._control = osc.initial_state(self.params, self.num_envs)
+    self._stale = np.ones(self.num_envs, bool)
+    self._before_last = {f: self._a[f].copy() for f in _BEFORE_LAST}
+
+  def arm(self) -> osc.ArmState:
+    """The controller's inputs at the current state."""
+    return self._reading(self._a)
+
+  def _controller_reading(self) -> osc.ArmState:
+    """What robosuite's controller reads at the first substep of a control step: the current state,
+    or the reset pose's cached reading in environments not stepped since their reset (all but the
+    gravity and Coriolis compensation, which robosuite reads live)."""
+    now = self.arm()
+    if not self._stale.any():
+      return now
+    stale = self._stale
+    pick = lambda cached, live: np.where(stale.reshape((-1,) + (1,) * (live.ndim - 1)), cached, live)  # noqa: E731
+    return osc.ArmState(*(live if f == "bias" else pick(cached, live)
+                          for f, cached, live in zip(osc.ArmState._fields, self._reset_arm, now)))
+
+  def _reading(self, a: dict) -> osc.ArmState:
+    p = self.params
+    site_pos = a["site_xpos"][:, p.eef_site]
+    axis, anchor = a["xaxis"][:, self._arm_joints], a["xanchor"][:, self._arm_joints]
+    jacp = np.cross(axis, site_pos[:, None] - anchor)  # hinge j: axis_j x (site - anchor_j)
+    jac = np.concatenate([np.swapaxes(jacp, 1, 2), np.swapaxes(axis, 1, 2)], axis=1)
+    dofs = list(p.arm_dofs)
+    return osc.ArmState(ee_pos=site_pos.copy(), ee_mat=a["site_xmat"][:, p.eef_site].reshape(-1, 3, 3),
+                        jac=jac, mass=a["M"][:, self._mass], bias=a["qfrc_bias"][:, dofs],
+                        q=a["qpos"][:, list(p.arm_qpos)], dq=a["qvel"][:, dofs])
+
+  def step(self, actions: np.ndarray) -> None:
+    """One control step of every environment: the goal from `actions` [B, 7], then the substeps."""
+    actions = np.asarray(actions, np.float64)
+    if actions.shape != (self.num_envs, ACTION_SIZE):
+      raise ValueError(f"{self.scene.task.suite} task {self.scene.task.index}: actions have shape {actions.shape}, "
+                       f"expected ({self.num_envs}, {ACTION_SIZE}) (LIBERO's delta pose + gripper)")
+    if self._control is None:
+      raise RuntimeError("step before reset")
+    p = self.params
+    reading = self._controller_reading()
+    goal_pos, control = osc.set_goal(p, self._control, reading, actions)
+    ctrl = self._a["ctrl"]
+    arm_ids, grip_ids = list(p.arm_actuators), list(p.gripper_actuators)
+    for k in range(p.substeps):
+      ctrl[:, arm_ids] = osc.torques(p, goal_pos, control.goal_ori, reading if k == 0 else self.arm())
+      ctrl[:, grip_ids], control = osc.gripper(p, control, actions[:, 6])
+      if k == p.substeps - 1:
+        self._before_last = {f: self._a[f].copy() for f in _BEFORE_LAST}
+      self._batch.step(nstep=1, stage=mujoco.mjtStage.mjSTAGE_VEL)
+    self._control = control
+    self._stale[:] = False
+
+  def goal_inputs(self) -> predicates.GoalInputs:
+    """The goal's inputs as LIBERO's _check_success reads them after a step: positions and contacts
+    of the state before the last substep (MuJoCo's derived fields after mj_step), joints now."""
+    b = self._before_last
+    return predicates.GoalInputs(b["xpos"], b["xmat"], b["site_xpos"], b["site_xmat"], self._a["qpos"].copy(),
+                                 predicates.touching_from_sensors(self.goal, b["sensordata"]))
+
+  def success(self) -> np.ndarray:
+    """[B] bool: the task's goal holds (LIBERO's _check_success after the last step or the reset)."""
+    return predicates.satisfied(self.goal, self.goal_inputs())
+
+  @property
+  def data(self) -> dict:
+    """The bound arrays (live views, [B, ...]) of the batch: qpos, qvel, xpos, xquat, site_xpos, ..."""
+    return self._a
