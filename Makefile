@@ -21,7 +21,7 @@ export MUJOCO_GL ?= egl
 # contention doubled the quick preset's step.) docs/measurements/speed.md.
 export GLIBC_TUNABLES ?= glibc.malloc.hugetlb=1
 
-.PHONY: install test test-fast test-libero quickstart toy-skills paper-cpu paper-cpu-image loss-ablation k-sweep plug-readings notebooks experts demos pretrain fewshot eval bench-envs bench-loader bench-train bench-eval bench-eval-scale bench soak scenes clean
+.PHONY: install test test-fast test-libero quickstart toy-skills paper-cpu paper-cpu-image loss-ablation k-sweep plug-readings notebooks experts demos pretrain fewshot eval bench-envs bench-loader bench-train bench-eval bench-eval-scale bench-libero bench soak scenes clean
 
 install: $(VENV)/.installed
 
@@ -154,6 +154,11 @@ bench-eval: install
 	$(PY) -m benchmarks.bench_eval --out $(OUT)/bench_eval.json
 
 # every task x many trials of one state policy, memory bounded by the batch (BENCH_EVAL_SCALE_ARGS: --trials, --batches, --run)
+# LIBERO: our C-engine batch against LIBERO's own env, episodes/s with both cameras (docs/libero.md).
+bench-libero: install
+	mkdir -p $(OUT)
+	$(PY) -m benchmarks.bench_libero --out $(OUT)/bench_libero.json
+
 bench-eval-scale: install
 	mkdir -p $(OUT)
 	$(PY) -m benchmarks.bench_eval_scale --out $(OUT)/bench_eval_scale.json $(BENCH_EVAL_SCALE_ARGS)
@@ -165,6 +170,7 @@ soak: install
 
 scenes: install
 	$(PY) -m figures.scene_pictures --out docs/scenes
+	$(PY) -m figures.libero_frames --out docs/scenes
 
 clean:
 	rm -rf $(VENV) $(OUT)

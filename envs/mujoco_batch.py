@@ -229,7 +229,8 @@ class MujocoBatchEnv:
 
 
 class CameraRenderer:
-  """Both cameras of a batch of states, drawn by `mujoco.Renderer` on worker threads.
+  """A batch of states seen by `cameras` (by default our tabletop's two), drawn by `mujoco.Renderer`
+  on worker threads.
 
   An OpenGL context belongs to the thread that made it, so each worker thread
   makes, uses and closes its own renderer, on its own copy of the model (a
@@ -241,12 +242,16 @@ class CameraRenderer:
   so that nothing waits on a dead thread.
   """
 
-  def __init__(self, model: mujoco.MjModel, image_size, nthread: int):
+  def __init__(self, model: mujoco.MjModel, image_size, nthread: int, cameras=CAMERAS,
+               flags_off=_RENDER_FLAGS_OFF, multisample: bool = False, hidden_groups=(), max_geom: int = 10000):
     self._size = tuple(image_size)
+    self.cameras = tuple(cameras)
     self._jobs = [queue.SimpleQueue() for _ in range(max(1, nthread))]
     started = queue.SimpleQueue()
+    model = _render_model(model, *self._size, multisample)
     self._threads = [threading.Thread(target=_render_worker,
-                                      args=(_render_model(model, *self._size), self._size, jobs, started),
+                                      args=(model, self._size, jobs, started, self.cameras, tuple(flags_off),
+                                            tuple(hidden_groups), max_geom),
                                       daemon=True, name="mujoco-render")
                      for jobs in self._jobs]  # the workers hold no reference to self, so it can be collected
     # Under GLFW (MUJOCO_GL unset or glfw), one renderer first, then the others:
@@ -277,7 +282,7 @@ class CameraRenderer:
     looks: {field: [B, ...]} (`envs.appearance.LOOK_FIELDS`), row i the model's
     visual fields for simulation i; None draws the model as it is."""
     if out is None:
-      out = {c: np.zeros((qpos.shape[0],) + self._size + (3,), np.uint8) for c in CAMERAS}
+      out = {c: np.zeros((qpos.shape[0],) + self._size + (3,), np.uint8) for c in self.cameras}
     done = queue.SimpleQueue()
     chunks = [c for c in np.array_split(ids, len(self._jobs)) if c.size]
     for jobs, chunk in zip(self._jobs, chunks):
@@ -305,15 +310,19 @@ class CameraRenderer:
     self.close()
 
 
-def _render_worker(model: mujoco.MjModel, size, jobs: queue.SimpleQueue, started: queue.SimpleQueue) -> None:
+def _render_worker(model: mujoco.MjModel, size, jobs: queue.SimpleQueue, started: queue.SimpleQueue,
+                   cameras=CAMERAS, flags_off=_RENDER_FLAGS_OFF, hidden_groups=(), max_geom=10000) -> None:
   """Make a renderer and tell `started` (None, or the exception), then draw jobs until None."""
   renderer = None
   try:
-    renderer = mujoco.Renderer(model, *size)
-    for flag in _RENDER_FLAGS_OFF:
+    renderer = mujoco.Renderer(model, *size, max_geom=max_geom)
+    for flag in flags_off:
       renderer.scene.flags[getattr(mujoco.mjtRndFlag, flag)] = 0
+    option = mujoco.MjvOption()
+    for group in hidden_groups:
+      option.geomgroup[group] = 0
     data = mujoco.MjData(model)
-    cam_ids = [model.camera(c).id for c in CAMERAS]
+    cam_ids = [model.camera(c).id for c in cameras]
     own = {f: getattr(model, f)[None].copy() for f in appearances.LOOK_FIELDS}  # the model's look, as row 0
   except Exception as e:  # noqa: BLE001  handed to the caller's thread
     if renderer is not None:
@@ -335,8 +344,8 @@ def _render_worker(model: mujoco.MjModel, size, jobs: queue.SimpleQueue, started
           data.qpos[:] = qpos[i]
           mujoco.mj_kinematics(model, data)
           mujoco.mj_camlight(model, data)
-          for cam, cid in zip(CAMERAS, cam_ids):
-            renderer.update_scene(data, cid)
+          for cam, cid in zip(cameras, cam_ids):
+            renderer.update_scene(data, cid, scene_option=option)
             out[cam][i] = renderer.render()
         done.put(None)
       except Exception as e:  # noqa: BLE001  handed to the caller's thread
@@ -351,9 +360,10 @@ def _set_look(model: mujoco.MjModel, look: dict, i) -> None:
     getattr(model, f)[:] = v[i]
 
 
-def _render_model(model: mujoco.MjModel, h: int, w: int) -> mujoco.MjModel:
-  """A copy of `model` whose offscreen buffer is the image size, without multisampling."""
+def _render_model(model: mujoco.MjModel, h: int, w: int, multisample: bool = False) -> mujoco.MjModel:
+  """A copy of `model` whose offscreen buffer is the image size, without multisampling unless asked."""
   m = copy.copy(model)
   m.vis.global_.offwidth, m.vis.global_.offheight = w, h
-  m.vis.quality.offsamples = 0
+  if not multisample:
+    m.vis.quality.offsamples = 0
   return m

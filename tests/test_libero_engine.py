@@ -1,6 +1,7 @@
 """LIBERO on our C-engine batch (envs/libero/engine.py, controller.py), judged by LIBERO's own
 environment: from the same benchmark init state under the same actions, our joint positions and
-velocities (arm, fingers and every object) after each control step against OffScreenRenderEnv's;
+velocities (arm, fingers and every object) and observations after each control step against
+OffScreenRenderEnv's, and both cameras pixel for pixel;
 the goal predicate against its `_check_success` on those rollout states; a controller that
 departs from robosuite's (a gain 1% off, the first step's cached reading ignored) caught by the
 same tolerance; a batch of B the same as B runs alone.
@@ -54,6 +55,7 @@ class Reference:
   qpos: np.ndarray  # [1, steps, nq] after each control step
   qvel: np.ndarray
   success: np.ndarray  # [1, steps] the reference's _check_success
+  observed: np.ndarray  # [1, steps, 3 + 3 + 7 + 2] eef pos, first object's pos, joints, fingers
 
 
 @functools.lru_cache(maxsize=None)
@@ -66,28 +68,40 @@ def record(suite: str, index: int) -> Reference:
     states = suites.init_states(suite, index)[[trial(index)]]
     acts = actions(STEPS, index)[None]
     env.set_init_state(states[0])
-    qpos, qvel, success = [], [], []
+    qpos, qvel, success, observed = [], [], [], []
     for a in acts[0]:
-      env.step(a)
+      obs = env.step(a)[0]
       qpos.append(env.env.sim.data.qpos.copy())
       qvel.append(env.env.sim.data.qvel.copy())
       success.append(bool(env.check_success()))
+      observed.append(observed_vector(obs, s))
     return Reference(suite, index, s, states, acts, np.array(qpos)[None], np.array(qvel)[None],
-                     np.array(success)[None])
+                     np.array(success)[None], np.array(observed)[None])
   finally:
     env.close()
 
 
+def first_object(s: scene.Scene) -> str:
+  return next(name for name, o in s.meta["objects"].items() if o["kind"] == "object")
+
+
+def observed_vector(obs: dict, s: scene.Scene) -> np.ndarray:
+  """Some of LIBERO's observations of one env (or [B] envs), in a row."""
+  names = ("robot0_eef_pos", f"{first_object(s)}_pos", "robot0_joint_pos", "robot0_gripper_qpos")
+  return np.concatenate([np.asarray(obs[n]) for n in names], axis=-1)
+
+
 def rollout(s: scene.Scene, states: np.ndarray, acts: np.ndarray, batch_cls=engine.LiberoBatch):
-  """(qpos, qvel) [B, steps, ...] of our engine, and the goal predicate on each step's state."""
+  """(qpos, qvel, success, observations) [B, steps, ...] of our engine."""
   b = batch_cls(s, len(states), nthread=1)
   b.reset(states)
-  qpos, qvel, success = [], [], []
+  qpos, qvel, success, observed = [], [], [], []
   for k in range(acts.shape[1]):
     b.step(acts[:, k])
     qpos.append(b.data["qpos"].copy()), qvel.append(b.data["qvel"].copy())
     success.append(b.success())
-  return np.stack(qpos, 1), np.stack(qvel, 1), np.stack(success, 1)
+    observed.append(observed_vector(b.observe(), s))
+  return np.stack(qpos, 1), np.stack(qvel, 1), np.stack(success, 1), np.stack(observed, 1)
 
 
 def errors(ref: Reference, qpos: np.ndarray, qvel: np.ndarray) -> tuple[float, float]:
@@ -95,8 +109,9 @@ def errors(ref: Reference, qpos: np.ndarray, qvel: np.ndarray) -> tuple[float, f
 
 
 def check_parity(ref: Reference) -> None:
-  qpos, qvel, success = rollout(ref.scene, ref.states, ref.actions)
+  qpos, qvel, success, observed = rollout(ref.scene, ref.states, ref.actions)
   dq, dv = errors(ref, qpos, qvel)
+  assert np.abs(observed - ref.observed).max() < QPOS_TOL, (ref.suite, ref.index, np.abs(observed - ref.observed).max())
   print(f"{ref.suite} {ref.index}: max |qpos - ref| {dq:.2e}, |qvel - ref| {dv:.2e} over {STEPS} steps from init state {trial(ref.index)}")
   assert dq < QPOS_TOL and dv < QVEL_TOL, (ref.suite, ref.index, dq, dv)
   assert np.array_equal(success, ref.success), (ref.suite, ref.index)
@@ -109,6 +124,38 @@ def reference(request):
 
 def test_rollouts_follow_the_reference_env(reference):
   check_parity(reference)
+
+
+def test_observations_and_cameras_are_the_reference_envs(reference):
+  """LIBERO's observations (proprioception, objects, both cameras at 128x128) after the reset and
+  after each of 3 steps, against the reference's with its cameras on: images pixel for pixel."""
+  env = scene.reference_env(reference.suite, reference.index)
+  b = engine.LiberoBatch(reference.scene, 1, nthread=1, render=True)
+  try:
+    got, want = [], [env.set_init_state(reference.states[0])]
+    b.reset(reference.states)
+    got.append(b.observe())
+    for a in reference.actions[0, :3]:
+      want.append(env.step(a)[0])
+      b.step(a[None])
+      got.append(b.observe())
+  finally:
+    env.close()
+    b.close()
+  for k, (ours, ref) in enumerate(zip(got, want)):
+    for name, value in ours.items():
+      theirs = np.asarray(ref[name])
+      if name.endswith("_image"):
+        diff = np.abs(value[0].astype(int) - theirs[::-1])  # robosuite's rows are bottom-up
+        # Identical at the init state; after steps a state 1e-8 apart can move an edge's multisample
+        # coverage by a level.
+        assert (diff.max() == 0) if k == 0 else ((diff > 8).mean() < 2e-3 and diff.mean() < 0.05), (
+            reference.suite, reference.index, k, name, diff.mean(), diff.max())
+      elif name.endswith("quat"):
+        assert min(np.abs(value[0] - theirs).max(), np.abs(value[0] + theirs).max()) < QPOS_TOL, (k, name)
+      else:
+        assert np.abs(value[0] - theirs).max() < QPOS_TOL, (k, name, value[0], theirs)
+  assert {"agentview_image", "robot0_eye_in_hand_image", "robot0_eef_pos", "robot0_gripper_qpos"} <= set(got[0])
 
 
 class _Departing(engine.LiberoBatch):
@@ -130,7 +177,7 @@ class _Departing(engine.LiberoBatch):
 def test_a_controller_that_departs_from_the_reference_is_caught(wrong):
   ref = record(*DEFAULT[1])
   cls = type("Wrong", (_Departing,), {"wrong": wrong})
-  qpos, qvel, _ = rollout(ref.scene, ref.states, ref.actions, batch_cls=cls)
+  qpos, qvel, _, _ = rollout(ref.scene, ref.states, ref.actions, batch_cls=cls)
   dq, dv = errors(ref, qpos, qvel)
   assert dq > 10 * QPOS_TOL, (wrong, dq, dv)
 

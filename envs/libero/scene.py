@@ -33,7 +33,7 @@ import numpy as np
 from envs.libero import controller, suites
 from envs.libero.installed import libero_module, provenance
 
-FORMAT = 2  # of the cached metadata; a change rebuilds every scene (2: the controller's parameters)
+FORMAT = 3  # of the cached metadata; a change rebuilds every scene (2: the controller's parameters; 3: eef_body)
 CAMERAS = ("agentview", "robot0_eye_in_hand")  # LIBERO's evaluation cameras
 CAMERA_SIZE = 128  # LIBERO's default; the MJCF does not depend on it
 FIXTURE_SEED = 0  # env.seed(0) then env.reset(), as LIBERO's evaluations start
@@ -184,7 +184,7 @@ def describe(env, task: suites.Task) -> tuple[str, dict]:
     "bddl_file": os.path.normpath(task.bddl_file), "provenance": provenance(), "fixture_seed": FIXTURE_SEED,
     "cameras": list(CAMERAS), "control_freq": float(inner.control_freq), "timestep": float(ours.opt.timestep),
     "nq": int(ours.nq), "nv": int(ours.nv), "state_width": 1 + int(ours.nq) + int(ours.nv),
-    "robot": {"eef_site": robot.controller.eef_name, "arm_joints": _joints(ours, robot.robot_joints),
+    "robot": {"eef_site": robot.controller.eef_name, "eef_body": robot.robot_model.eef_name, "arm_joints": _joints(ours, robot.robot_joints),
               "gripper_joints": _joints(ours, robot.gripper.joints),
               "init_qpos": [float(v) for v in robot.init_qpos]},
     "controller": controller.params_of(env),
