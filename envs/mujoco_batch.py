@@ -248,10 +248,9 @@ class CameraRenderer:
     self.cameras = tuple(cameras)
     self._jobs = [queue.SimpleQueue() for _ in range(max(1, nthread))]
     started = queue.SimpleQueue()
-    model = _render_model(model, *self._size, multisample)
-    self._threads = [threading.Thread(target=_render_worker,
-                                      args=(model, self._size, jobs, started, self.cameras, tuple(flags_off),
-                                            tuple(hidden_groups), max_geom),
+    self._threads = [threading.Thread(target=_render_worker,  # each its own copy of the model (looks)
+                                      args=(_render_model(model, *self._size, multisample), self._size, jobs,
+                                            started, self.cameras, tuple(flags_off), tuple(hidden_groups), max_geom),
                                       daemon=True, name="mujoco-render")
                      for jobs in self._jobs]  # the workers hold no reference to self, so it can be collected
     # Under GLFW (MUJOCO_GL unset or glfw), one renderer first, then the others:
