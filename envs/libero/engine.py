@@ -166,30 +166,32 @@ class LiberoBatch:
       ctrl[:, grip_ids], control = osc.gripper(p, control, actions[:, 6])
       if k == p.substeps - 1:
         self._before_last = {f: self._a[f].copy() for f in _BEFORE_LAST}
-      before = {f: self._a[f].copy() for f in _OBSERVED}
+      sample, wrap = self._clock_tick()
+      before = {f: self._a[f][sample] for f in _OBSERVED} if sample.any() else None  # copies only when sampled
       self._batch.step(nstep=1, stage=mujoco.mjtStage.mjSTAGE_VEL)
-      self._tick(before)
+      if before is not None:
+        self._observed["now_qpos"][sample] = self._a["qpos"][sample]
+        for f in _OBSERVED:
+          self._observed[f][sample] = before[f]
+      self._sampled |= sample
+      self._clock[wrap] %= 1.0 / self.scene.meta["control_freq"]
+      self._sampled[wrap] = False
     self._control = control
     self._stale[:] = False
 
-  def _tick(self, before: dict) -> None:
-    """robosuite's Observable.update after a substep, for every env's clock: the first update of a
-    sampling period samples (the state now for joints, `before` for what MjData's derived fields
-    describe after mj_step); a period ends when the clock reaches 1 / control rate. Float for float
-    as robosuite computes it: the phase of its samples inside a control step follows from it (for
-    LIBERO after set_init_state, the 24th substep of 25)."""
+  def _clock_tick(self) -> tuple[np.ndarray, np.ndarray]:
+    """robosuite's Observable.update after the coming substep, for every env's clock: (which envs
+    sample then, which end a sampling period). The first update of a period samples (the joints
+    after the substep; what MjData's derived fields describe after mj_step: the state before
+    it); a period ends when the clock reaches 1 / control rate. Float for float as robosuite
+    computes it (no observation delay): the phase of its samples inside a control step follows
+    from it (for LIBERO after set_init_state, the 24th substep of 25)."""
     rate = 1.0 / self.scene.meta["control_freq"]
     self._clock += float(self.model.opt.timestep)
-    sample = ~self._sampled & (rate - 0.0 >= self._clock)
+    sample = ~self._sampled & (rate >= self._clock)
     wrap = self._clock >= rate
-    sample |= wrap & ~self._sampled & ~sample  # robosuite's late sample (it warns)
-    if sample.any():
-      self._observed["now_qpos"][sample] = self._a["qpos"][sample]
-      for f in _OBSERVED:
-        self._observed[f][sample] = before[f][sample]
-      self._sampled |= sample
-    self._clock[wrap] %= rate
-    self._sampled[wrap] = False
+    sample |= wrap & ~self._sampled  # robosuite's late sample (it warns)
+    return sample, wrap
 
   def goal_inputs(self) -> predicates.GoalInputs:
     """The goal's inputs as LIBERO's _check_success reads them after a step: positions and contacts
@@ -200,7 +202,7 @@ class LiberoBatch:
 
   def observe(self) -> dict:
     """LIBERO's observations of every environment, named as OffScreenRenderEnv names them and
-    sampled when robosuite samples them (`_tick`: after the 24th substep of a control step):
+    sampled when robosuite samples them (`_clock_tick`: after the 24th substep of a control step):
     joints at that moment, the end effector, the objects and the images from the state a substep
     earlier (what MjData's derived fields hold then). Quaternions are (x, y, z, w); robot0_eef_quat
     is the hand body's, robot0_eef_pos the grip site's, as robosuite has them. Images are
