@@ -51,6 +51,10 @@ def padded_object_state(x):
 
 
 def task_class(name: str) -> type[TabletopEnv]:
+  from envs.libero import suites as libero_suites
+  if name not in TASKS and libero_suites.is_libero(name):
+    raise ValueError(f"{name} is a LIBERO task: it runs on envs.libero's engine (engine.LiberoBatch, LIBERO's "
+                     "actions), not envs.make; closed-loop evaluation of policies on LIBERO is not built yet")
   if name not in TASKS:
     raise ValueError(f"unknown task {name!r}; valid tasks: {', '.join(TASKS)}")
   return TASKS[name]
@@ -64,14 +68,19 @@ def quiet_warp() -> None:
 
 
 def taskset(name: str) -> tuple[str, ...]:
-  """Task names of a taskset; a single task name is accepted as a one-task set."""
+  """Task names of a taskset; a single task name is accepted as a one-task set. LIBERO's suites
+  (libero_spatial, libero_object, libero_goal, libero_10, libero_90) name their tasks
+  "<suite>:<index>" (`envs.libero.suites.taskset`)."""
   if name in TASKSETS:
     return TASKSETS[name]
   if name in TASKS:
     return (name,)
+  from envs.libero import suites as libero_suites  # cheap: LIBERO itself loads only for its suites
+  if libero_suites.is_libero(name):
+    return libero_suites.taskset(name)
   raise ValueError(
-      f"unknown taskset {name!r}; valid tasksets: {', '.join(TASKSETS)} "
-      f"(or one task: {', '.join(TASKS)})")
+      f"unknown taskset {name!r}; valid tasksets: {', '.join(TASKSETS)}, {', '.join(libero_suites.SUITES)} "
+      f"(or one task: {', '.join(TASKS)}, or <libero suite>:<index>)")
 
 
 def renderer_of(backend: str) -> str:

@@ -17,6 +17,9 @@ def cmd_experts(args) -> int:
 
   names = [n for part in args.taskset.split(",") for n in envs.taskset(part)]
   backend = args.backend  # resolved by `main`
+  from envs.libero import suites as libero_suites
+  if any(libero_suites.is_libero(n) for n in names):
+    return _libero_experts(args, names, backend)
   rows = []
   bar = tqdm(names, desc="experts", unit="task", file=sys.stderr)
   for name in bar:
@@ -57,6 +60,44 @@ def cmd_experts(args) -> int:
                    device=str(jax.devices()[0]), tasks=rows)
     from skillplug_jax.atomic_json import write_json_atomic
     write_json_atomic(args.json, payload)
+    print(f"\nwrote {args.json}")
+  return 0
+
+
+def _libero_experts(args, names: list[str], backend: str) -> int:
+  """The LIBERO experts on the benchmark's init states (trial i = init state i, as LIBERO evaluates)."""
+  from tqdm import tqdm
+
+  from envs.libero import expert, suites
+  if backend != "mujoco" or not all(suites.is_libero(n) for n in names):
+    raise SystemExit("skillplug experts: LIBERO tasks run on MuJoCo's C engine (--backend mujoco), "
+                     "and not in one taskset with DISCOVERSE tasks")
+  trials = min(args.episodes, suites.INIT_STATES_PER_TASK)
+  rows = []
+  bar = tqdm(names, desc="experts", unit="task", file=sys.stderr)
+  for name in bar:
+    bar.set_postfix_str(name)
+    task, t0 = suites.parse(name), time.time()
+    try:
+      row = expert.run(task.suite, task.index, trials)
+    except NotImplementedError as e:
+      row = {"suite": task.suite, "task": task.index, "name": task.name, "trials": trials, "not_scripted": str(e)}
+    rows.append({"id": name, **row, "wall_s": round(time.time() - t0, 1)})
+  print(f"\nScripted LIBERO experts on the benchmark's first {trials} init states per task (backend {backend}):\n")
+  print("| task | LIBERO task | success | LIBERO's success | median steps to LIBERO's success | limit | wall (s) |")
+  print("|---|---|---|---|---|---|---|")
+  for r in rows:
+    if "not_scripted" in r:
+      print(f"| {r['id']} | {r['name']} | not scripted | | | | |")
+      continue
+    steps = "-" if r["median_steps"] is None else f"{r['median_steps']:.0f}"
+    print(f"| {r['id']} | {r['name']} | {100 * r['success']:.0f}% | {100 * r['libero_success']:.0f}% | {steps} | "
+          f"{r['time_limit']} | {r['wall_s']} |")
+  print("\nSuccess: the goal holds with the gripper open and the hand withdrawn, and still holds "
+        f"{expert.HOLD_STEPS} steps later. LIBERO's success: its predicate at any step within the limit.")
+  if args.json:
+    from skillplug_jax.atomic_json import write_json_atomic
+    write_json_atomic(args.json, dict(taskset=args.taskset, trials=trials, backend=backend, tasks=rows))
     print(f"\nwrote {args.json}")
   return 0
 
@@ -188,8 +229,10 @@ def build_parser() -> argparse.ArgumentParser:
   sub = p.add_subparsers(dest="command", required=True)
   e = sub.add_parser("experts", help="run the scripted experts and print their success table",
                      formatter_class=argparse.ArgumentDefaultsHelpFormatter)
-  e.add_argument("--taskset", required=True, help="discoverse7, discoverse_fewshot4, or task names (comma-separated)")
-  e.add_argument("--episodes", type=int, default=100, help="seeded episodes per task")
+  e.add_argument("--taskset", required=True, help="discoverse7, discoverse_fewshot4, a LIBERO suite (libero_object, "
+                 "...), or task names (comma-separated; LIBERO's: libero_object:3)")
+  e.add_argument("--episodes", type=int, default=100, help="seeded episodes per task (LIBERO: the benchmark's "
+                 "init states, at most 50)")
   e.add_argument("--batch", type=int, default=100, help="environments simulated at once")
   e.add_argument("--seed", type=int, default=0)
   _backend_flag(e)
@@ -198,7 +241,8 @@ def build_parser() -> argparse.ArgumentParser:
 
   d = sub.add_parser("demos", help="generate expert demonstrations as an RLDS dataset (tfds)",
                      formatter_class=argparse.ArgumentDefaultsHelpFormatter)
-  d.add_argument("--taskset", required=True, help="discoverse7, discoverse_fewshot4, or task names (comma-separated)")
+  d.add_argument("--taskset", required=True, help="discoverse7, discoverse_fewshot4, a LIBERO suite (libero_object, "
+                 "...: drawn starts, not the benchmark's init states), or task names (comma-separated)")
   d.add_argument("--demos", type=int, default=300, help="successful episodes kept per task")
   d.add_argument("--out", default="results/datasets", help="datasets directory")
   d.add_argument("--state-only", action="store_true", help="no camera images (state-based policies)")

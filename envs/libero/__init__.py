@@ -5,7 +5,7 @@
     s = scene.scene("libero_object", 0)               # the composed MJCF, cached on disk
     model = scene.model(s); data = mujoco.MjData(model)
     scene.set_init_state(model, data, suites.init_states("libero_object", 0)[3])
-    predicates.satisfied(predicates.compile_goal(s, model), predicates.state_of(model, data))
+    goal = predicates.compile_goal(s, model); predicates.satisfied(goal, predicates.state_of(goal, data))
 
     from envs.libero import engine                    # B copies on MuJoCo's C engine, LIBERO's actions
     batch = engine.LiberoBatch(s, 50); batch.reset(suites.init_states("libero_object", 0))

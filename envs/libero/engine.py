@@ -222,6 +222,10 @@ class LiberoBatch:
       obs.update({f"{c}_image": images[c] for c in scenes.CAMERAS})
     return obs
 
+  def observed_qpos(self) -> np.ndarray:
+    """[B, nq] every joint at the moment `observe()`'s joint observations were sampled."""
+    return self._observed["now_qpos"].copy()
+
   def close(self) -> None:
     if self._cameras is not None:
       self._cameras.close()

@@ -62,3 +62,27 @@ def init_states(suite: str, which: int | str) -> np.ndarray:
   as robosuite writes it (time, qpos, qvel), for `scene.set_init_state`."""
   t = task(suite, which)
   return np.asarray(quiet_benchmark(suite).get_task_init_states(t.index), dtype=np.float64)
+
+
+# ---- our task names: "<suite>:<index>", and a suite's name for all its tasks (tasksets)
+
+def is_libero(name: str) -> bool:
+  """Whether a task or taskset name is LIBERO's ("libero_object", "libero_object:3")."""
+  return name.split(":", 1)[0] in SUITES
+
+
+def taskset(name: str) -> tuple[str, ...]:
+  """Our names of a LIBERO suite's tasks ("libero_object" -> "libero_object:0", ...), or one task's."""
+  suite, _, which = name.partition(":")
+  listed = tasks(_check_suite(suite))
+  if not which:
+    return tuple(f"{suite}:{t.index}" for t in listed)
+  return (f"{suite}:{parse(name).index}",)
+
+
+def parse(name: str) -> Task:
+  """The task our name `<suite>:<index>` (or `<suite>:<LIBERO task name>`) stands for."""
+  suite, sep, which = name.partition(":")
+  if not sep or not which:
+    raise ValueError(f"a LIBERO task is named <suite>:<index>, e.g. libero_object:3; got {name!r}")
+  return task(_check_suite(suite), int(which) if which.isdigit() else which)

@@ -24,8 +24,9 @@ from tqdm import tqdm
 
 import envs
 from envs import rollout
+from envs.libero import suites as libero_suites
 from skillplug_jax import dir_lock
-from skillplug_jax.data import normalization, rlds
+from skillplug_jax.data import libero_recording, normalization, rlds
 from skillplug_jax.data.recording import Episode, record_expert
 
 
@@ -42,6 +43,20 @@ class DemoConfig:
 
   def __post_init__(self):  # an API call's edge: "auto" is resolved here, once (envs.resolve_backend)
     object.__setattr__(self, "backend", envs.resolve_backend(self.backend))
+    kinds = {libero_suites.is_libero(part) for part in self.taskset.split(",")}
+    if len(kinds) > 1:
+      raise ValueError(f"taskset {self.taskset!r} mixes LIBERO and DISCOVERSE tasks: their observations and "
+                       "actions differ, so one dataset holds one benchmark's tasks")
+    if self.layout == "libero":
+      if self.backend != "mujoco":
+        raise ValueError(f"LIBERO demonstrations run on MuJoCo's C engine (backend 'mujoco'); "
+                         f"the {self.backend} path for LIBERO is not built yet")
+      if self.images and self.image_size[0] != self.image_size[1]:
+        raise ValueError(f"LIBERO's cameras are square; got image size {self.image_size}")
+
+  @property
+  def layout(self) -> str:
+    return "libero" if libero_suites.is_libero(self.taskset.split(",")[0]) else "discoverse"
 
   @property
   def tasks(self) -> tuple[str, ...]:
@@ -55,7 +70,7 @@ class DemoConfig:
 
   @property
   def spec(self) -> rlds.DatasetSpec:
-    return rlds.DatasetSpec(self.tasks, tuple(self.image_size) if self.images else None)
+    return rlds.DatasetSpec(self.tasks, tuple(self.image_size) if self.images else None, self.layout)
 
 
 def dataset_path(cfg: DemoConfig, out: str | os.PathLike) -> Path:
@@ -103,29 +118,34 @@ def _write(cfg: DemoConfig, out: str | os.PathLike, tasks: tuple[str, ...], fina
     stats[task] = _stage_info(path)
   bar.close()
 
+  language = {t: libero_suites.parse(t).language for t in tasks} if cfg.layout == "libero" else {}
+
   def records():
     for task in tasks:
       kept, info = _load_stage(staging / f"{task}.npz")
       for idx, ep in zip(info["reset_index"], kept):
-        yield rlds.EpisodeRecord(task, cfg.seed, int(idx), ep)
+        yield rlds.EpisodeRecord(task, cfg.seed, int(idx), ep, language.get(task, ""))
 
   if progress:
     print(f"writing {final} ...", file=sys.stderr)
   building = Path(out) / f".{cfg.name}.building"
   shutil.rmtree(building, ignore_errors=True)
+  renderer = (None if not cfg.images else LIBERO_RENDERER if cfg.layout == "libero" else envs.renderer_of(cfg.backend))
   metadata = dict(generator="skillplug_jax.data.demos", config=_config_dict(cfg),
-                  device=str(jax.devices()[0]), backend=cfg.backend,
-                  renderer=envs.renderer_of(cfg.backend) if cfg.images else None,
+                  device=str(jax.devices()[0]), backend=cfg.backend, renderer=renderer,
                   per_task={t: {k: v for k, v in s.items() if k != "reset_index"} for t, s in stats.items()})
+  if language:
+    metadata["language"] = language
   version_dir = rlds.write_dataset(building, cfg.spec, records, metadata)
-  actions, joints, objects = [], [], []
+  fields = [k for k, _ in rlds.layout_of(cfg.spec).state]
+  actions, state = [], {k: [] for k in fields}
   for t in tasks:  # only the arrays the statistics need, not the images
     with np.load(staging / f"{t}.npz") as z:
       actions.append(z["action"])
-      joints.append(z["obs/joint_pos"])
-      objects.append(z["obs/object_state"])
+      for k in fields:
+        state[k].append(z[f"obs/{k}"])
   normalization.write_stats(version_dir, normalization.stats_of(
-      np.concatenate(actions), np.concatenate(joints), np.concatenate(objects)))
+      np.concatenate(actions), **{k: np.concatenate(v) for k, v in state.items()}))
   rlds.write_checksums(version_dir)
   os.replace(version_dir, final)
   shutil.rmtree(building, ignore_errors=True)
@@ -139,8 +159,41 @@ def _config_dict(cfg: DemoConfig) -> dict:
   return d
 
 
+# How LIBERO demonstrations' cameras are drawn (libero_recording.record_expert).
+LIBERO_RENDERER = "MuJoCo C engine, LIBERO's camera settings, no multisampling"
+
+
+def _generate_libero_task(cfg: DemoConfig, task: str, bar) -> tuple[list[Episode], dict]:
+  """Run expert batches from drawn LIBERO starts (`envs.libero.starts`, seeded by cfg.seed) until
+  `cfg.demos` episodes succeed."""
+  kept, indices, attempts, successes, nans, t0 = [], [], 0, 0, 0, time.time()
+  num = min(cfg.batch, cfg.demos)
+  max_attempts = 3 * cfg.demos + 2 * num
+  while len(kept) < cfg.demos:
+    if attempts >= max_attempts:
+      raise RuntimeError(f"{task}: only {len(kept)} of {attempts} expert episodes succeeded; "
+                         f"cannot collect {cfg.demos} demonstrations")
+    bar.set_postfix_str(f"{task} (simulating {num})")
+    episodes = libero_recording.record_expert(task, attempts, num, seed=cfg.seed, images=cfg.images,
+                                              image_size=cfg.image_size[0])
+    for b, ep in enumerate(episodes):
+      nans += ep.nan
+      successes += ep.success
+      if ep.success and len(kept) < cfg.demos:
+        kept.append(ep)
+        indices.append(attempts + b)
+        bar.update(1)
+    attempts += num
+  info = dict(reset_index=np.asarray(indices, np.int64), attempts=attempts, kept=len(kept),
+              expert_success_rate=successes / attempts, nan_episodes=nans, starts="drawn (envs.libero.starts)",
+              wall_s=round(time.time() - t0, 2), mean_length=float(np.mean([len(e.action) for e in kept])))
+  return kept, info
+
+
 def _generate_task(cfg: DemoConfig, task: str, bar) -> tuple[list[Episode], dict]:
   """Run seeded expert batches until `cfg.demos` episodes succeed."""
+  if cfg.layout == "libero":
+    return _generate_libero_task(cfg, task, bar)
   benv = envs.make(task, num_envs=min(cfg.batch, cfg.demos), render=cfg.images,
                    image_size=cfg.image_size, backend=cfg.backend)
   kept, indices, attempts, successes, nans, t0 = [], [], 0, 0, 0, time.time()

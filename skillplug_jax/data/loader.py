@@ -32,7 +32,6 @@ import jax
 import numpy as np
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
-from envs.robot import CAMERAS
 from skillplug_jax.data import normalization, rlds
 from skillplug_jax.data.rlds import DatasetError
 
@@ -43,12 +42,14 @@ class Demonstrations:
   path: Path
   tasks: tuple[str, ...]
   image_size: tuple[int, int] | None
-  steps: dict  # joint_pos [S,7], object_state [S,D], action [S,7], side_rgb/wrist_rgb [S,H,W,3]
+  steps: dict  # the layout's low-dim fields (joint_pos [S,7], object_state [S,D], ...), action [S,7], <camera>_rgb [S,H,W,3]
   start: np.ndarray  # [E] first step of each episode
   length: np.ndarray  # [E]
   task_id: np.ndarray  # [E] index into tasks
   episode_id: tuple[str, ...]
   stats: dict
+  layout: rlds.Layout = rlds.DISCOVERSE
+  language: tuple[str, ...] = ()  # per task, in `tasks` order (layouts with language)
 
   @property
   def num_episodes(self) -> int:
@@ -81,9 +82,10 @@ def load_demonstrations(path: str | Path, *, tasks: Sequence[str] | None = None,
   if unknown:
     raise DatasetError(f"{path}: has no task {unknown} (it holds {', '.join(spec.tasks)})")
 
-  keys = ("joint_pos", "object_state") + (tuple(f"{c}_rgb" for c in CAMERAS) if images else ())
+  lay = rlds.layout_of(spec)
+  keys = tuple(k for k, _ in lay.state) + (tuple(f"{c}_rgb" for c in lay.cameras) if images else ())
   cols = {k: [] for k in keys + ("action",)}
-  length, task_id, ids = [], [], []
+  length, task_id, ids, language = [], [], [], {}
   episodes = rlds.read_episodes(builder)
   if progress:
     from tqdm import tqdm
@@ -99,6 +101,8 @@ def load_demonstrations(path: str | Path, *, tasks: Sequence[str] | None = None,
     cols["action"].append(act.astype(np.float32))
     length.append(len(act))
     task_id.append(wanted.index(meta["task"]))
+    if lay.language:
+      language.setdefault(meta["task"], meta["language_instruction"])
     ids.append(meta.get("episode_id", ""))
   counts = np.bincount(np.asarray(task_id, np.int64), minlength=len(wanted))
   empty = [t for t, c in zip(wanted, counts) if c == 0]
@@ -106,9 +110,9 @@ def load_demonstrations(path: str | Path, *, tasks: Sequence[str] | None = None,
     raise DatasetError(f"{path}: no episodes for task(s) {', '.join(empty)}")
 
   flat = {k: np.concatenate(v) for k, v in cols.items()}
-  stats = normalization.read_stats(path)
+  stats = normalization.read_stats(path, {"action": lay.action_dim, **dict(lay.state)})
   if stats is None:  # a dataset written elsewhere: compute once, keep beside it
-    stats = normalization.stats_of(flat["action"], flat["joint_pos"], flat["object_state"])
+    stats = normalization.stats_of(flat["action"], **{k: flat[k] for k, _ in lay.state})
     normalization.write_stats(path, stats)
   elif "object_state" not in stats:  # written before object state was normalised: the loaded tasks'
     stats = {**stats, "object_state": normalization.moments(flat["object_state"])}
@@ -121,7 +125,8 @@ def load_demonstrations(path: str | Path, *, tasks: Sequence[str] | None = None,
   return Demonstrations(
       path=Path(path), tasks=wanted, image_size=spec.image_size if images else None, steps=flat,
       start=np.concatenate([[0], np.cumsum(length)[:-1]]).astype(np.int64), length=length,
-      task_id=np.asarray(task_id, np.int32)[order], episode_id=tuple(ids[i] for i in order), stats=stats)
+      task_id=np.asarray(task_id, np.int32)[order], episode_id=tuple(ids[i] for i in order), stats=stats,
+      layout=lay, language=tuple(language[t] for t in wanted) if lay.language else ())
 
 
 def data_sharding(mesh: Mesh | None = None) -> NamedSharding:
@@ -193,16 +198,17 @@ class ChunkLoader:
     mask = offs < d.length[ep][:, None]
     idx = d.start[ep][:, None] + np.minimum(offs, d.length[ep][:, None] - 1)
     actions = normalization.normalize(d.steps["action"][idx], stats, "action")
-    batch = {
-        "joint_pos": normalization.normalize(d.steps["joint_pos"][row], stats, "joint_pos").astype(np.float32),
+    batch = {k: normalization.normalize(d.steps[k][row], stats, k).astype(np.float32)
+             for k, _ in d.layout.state if k != "object_state"}
+    batch.update({
         "object_state": (normalization.normalize(d.steps["object_state"][row], stats, "object_state")
                          if self.normalize_object_state else d.steps["object_state"][row]).astype(np.float32),
         "actions": np.where(mask[..., None], actions, 0.0).astype(np.float32),
         "action_mask": mask,
         "task_id": d.task_id[ep].astype(np.int32),
-    }
+    })
     if self.images:
-      for cam in CAMERAS:
+      for cam in d.layout.cameras:
         batch[f"{cam}_rgb"] = d.steps[f"{cam}_rgb"][row]
     if self.skill_labels is not None:
       batch["skill_label"] = self.skill_labels[row].astype(np.int32)

@@ -43,10 +43,14 @@ def moments(x: np.ndarray) -> dict:
           "min": x.min(0).tolist(), "max": x.max(0).tolist()}
 
 
-def stats_of(action: np.ndarray, joint_pos: np.ndarray, object_state: np.ndarray | None = None) -> dict:
+def stats_of(action: np.ndarray, joint_pos: np.ndarray, object_state: np.ndarray | None = None,
+             **state: np.ndarray) -> dict:
+  """Moments of the actions and of each low-dim observation field (a layout's other
+  proprioception, e.g. LIBERO's gripper_qpos, eef_pos and eef_quat, by name)."""
   out = {"action": moments(action), "joint_pos": moments(joint_pos)}
   if object_state is not None:
     out["object_state"] = moments(object_state)
+  out.update({k: moments(v) for k, v in state.items()})
   out["num_steps"] = int(len(action))
   return out
 
@@ -55,14 +59,17 @@ def write_stats(dataset_dir: str | Path, stats: dict) -> None:
   write_json_atomic(Path(dataset_dir) / STATS_FILE, stats)
 
 
-def read_stats(dataset_dir: str | Path) -> dict | None:
+def read_stats(dataset_dir: str | Path, widths: dict | None = None) -> dict | None:
+  """The dataset's statistics, checked against the widths of the action and its layout's fields
+  (`widths`, default DISCOVERSE's); None when there are none."""
+  widths = WIDTH if widths is None else widths
   path = Path(dataset_dir) / STATS_FILE
   if not path.exists():
     return None
   try:
     stats = read_json(path)
-    for k in KEYS + tuple(k for k in ("object_state",) if k in stats):
-      if len(stats[k]["mean"]) != WIDTH[k] or len(stats[k]["std"]) != WIDTH[k]:
+    for k in KEYS + tuple(k for k in widths if k in stats and k not in KEYS):
+      if len(stats[k]["mean"]) != widths[k] or len(stats[k]["std"]) != widths[k]:
         raise ValueError(f"{k} statistics have the wrong length")
   except (ValueError, KeyError, TypeError) as e:
     raise rlds.DatasetError(f"{path} is corrupt ({e}); delete it to recompute") from e

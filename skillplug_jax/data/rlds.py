@@ -32,6 +32,7 @@ import PIL.Image
 import tensorflow_datasets as tfds
 
 import envs
+from envs.libero import layout as libero_layout
 from envs.robot import CAMERAS
 from skillplug_jax import checksums
 from skillplug_jax.data.recording import Episode
@@ -48,25 +49,50 @@ class DatasetError(ValueError):
   """A dataset is missing, corrupt, or does not match what the caller needs."""
 
 
+class Layout(NamedTuple):
+  """The observation and action a benchmark's datasets hold: low-dim fields with their widths (in
+  order), the cameras, and whether an episode carries a language instruction."""
+  name: str
+  state: tuple[tuple[str, int], ...]
+  cameras: tuple[str, ...]
+  action_dim: int
+  language: bool
+  action_meaning: str
+
+
+# Our DISCOVERSE rebuild: joint targets; LIBERO: OSC_POSE deltas (envs/libero/layout.py).
+DISCOVERSE = Layout("discoverse", (("joint_pos", ACTION_DIM), ("object_state", envs.OBJECT_STATE_DIM)), CAMERAS,
+                    ACTION_DIM, False, "6 joint targets + gripper opening")
+LIBERO = Layout("libero", libero_layout.STATE, libero_layout.CAMERAS, 7, True,
+                "end-effector delta position and axis-angle + gripper, LIBERO's OSC_POSE")
+LAYOUTS = {layout.name: layout for layout in (DISCOVERSE, LIBERO)}
+
+
 class DatasetSpec(NamedTuple):
-  """What a dataset holds: its tasks, and its image size (None: state only)."""
+  """What a dataset holds: its tasks, its image size (None: state only) and its layout's name."""
   tasks: tuple[str, ...]
   image_size: tuple[int, int] | None  # (height, width) of both cameras
+  layout: str = "discoverse"
+
+
+def layout_of(spec: DatasetSpec) -> Layout:
+  if spec.layout not in LAYOUTS:
+    raise DatasetError(f"unknown dataset layout {spec.layout!r}; known layouts: {', '.join(LAYOUTS)}")
+  return LAYOUTS[spec.layout]
 
 
 def features(spec: DatasetSpec) -> tfds.features.FeaturesDict:
-  obs = {
-      "joint_pos": tfds.features.Tensor(shape=(ACTION_DIM,), dtype=np.float32),
-      "object_state": tfds.features.Tensor(shape=(envs.OBJECT_STATE_DIM,), dtype=np.float32),
-  }
+  lay = layout_of(spec)
+  obs = {k: tfds.features.Tensor(shape=(w,), dtype=np.float32) for k, w in lay.state}
   if spec.image_size is not None:
     h, w = spec.image_size
-    for cam in CAMERAS:
+    for cam in lay.cameras:
       obs[f"{cam}_rgb"] = tfds.features.Image(shape=(h, w, 3), dtype=np.uint8, encoding_format="png")
+  language = {"language_instruction": tfds.features.Text()} if lay.language else {}
   return tfds.features.FeaturesDict({
       "steps": tfds.features.Dataset({
           "observation": tfds.features.FeaturesDict(obs),
-          "action": tfds.features.Tensor(shape=(ACTION_DIM,), dtype=np.float32),
+          "action": tfds.features.Tensor(shape=(lay.action_dim,), dtype=np.float32),
           "reward": tfds.features.Scalar(dtype=np.float32),
           "discount": tfds.features.Scalar(dtype=np.float32),
           "is_first": tfds.features.Scalar(dtype=np.bool_),
@@ -81,6 +107,7 @@ def features(spec: DatasetSpec) -> tfds.features.FeaturesDict:
           "reset_index": tfds.features.Scalar(dtype=np.int64),
           "length": tfds.features.Scalar(dtype=np.int32),
           "success": tfds.features.Scalar(dtype=np.bool_),
+          **language,
       }),
   })
 
@@ -91,16 +118,18 @@ class EpisodeRecord(NamedTuple):
   reset_seed: int
   reset_index: int
   episode: Episode
+  language: str = ""  # the instruction (layouts with language)
 
 
 def rlds_example(spec: DatasetSpec, rec: EpisodeRecord) -> dict:
+  lay = layout_of(spec)
   ep = rec.episode
   length = len(ep.action)
   steps = []
   for t in range(length):
-    obs = {"joint_pos": ep.observation["joint_pos"][t], "object_state": ep.observation["object_state"][t]}
+    obs = {k: ep.observation[k][t] for k, _ in lay.state}
     if spec.image_size is not None:
-      for cam in CAMERAS:
+      for cam in lay.cameras:
         obs[f"{cam}_rgb"] = PIL.Image.fromarray(ep.observation[f"{cam}_rgb"][t])
     last = t == length - 1
     steps.append(dict(observation=obs, action=ep.action[t],
@@ -109,6 +138,10 @@ def rlds_example(spec: DatasetSpec, rec: EpisodeRecord) -> dict:
   meta = dict(episode_id=episode_id(rec.task, rec.reset_index), task=rec.task,
               task_id=spec.tasks.index(rec.task), reset_seed=rec.reset_seed,
               reset_index=rec.reset_index, length=length, success=ep.success)
+  if lay.language:
+    if not rec.language:
+      raise ValueError(f"{rec.task}: a {lay.name} episode needs its language instruction")
+    meta["language_instruction"] = rec.language
   return {"steps": steps, "episode_metadata": meta}
 
 
@@ -175,7 +208,7 @@ def write_dataset(build_root: str | os.PathLike, spec: DatasetSpec,
   a killed build leaves nothing that loads. The caller moves the returned
   directory to its final place (one rename: atomic too).
   """
-  metadata = {**metadata, "tasks": list(spec.tasks),
+  metadata = {**metadata, "tasks": list(spec.tasks), "layout": spec.layout,
               "image_size": None if spec.image_size is None else list(spec.image_size)}
   builder = _Builder(spec=spec, records=records, metadata=metadata,
                      data_dir=os.fspath(build_root), file_format="array_record")
@@ -193,7 +226,6 @@ def write_checksums(dataset_dir: str | os.PathLike) -> None:
 # ---- reading ----------------------------------------------------------------
 
 REQUIRED_STEP_FIELDS = ("observation", "action", "is_first", "is_last", "is_terminal")
-REQUIRED_OBS_FIELDS = ("joint_pos", "object_state")
 REQUIRED_META_FIELDS = ("task", "task_id", "length", "success")
 
 
@@ -293,38 +325,42 @@ def _reason(e: BaseException) -> str:
 
 
 def spec_of(builder) -> DatasetSpec:
-  """The dataset's tasks and image size, checked against its features."""
+  """The dataset's tasks, image size and layout, checked against its features."""
   feats = builder.info.features
-  _check_fields(builder.data_dir, feats)
   meta = builder.info.metadata or {}
+  name = meta.get("layout", DISCOVERSE.name)  # datasets written before layouts are DISCOVERSE's
+  if name not in LAYOUTS:
+    raise DatasetError(f"{builder.data_dir}: unknown dataset layout {name!r}; known layouts: {', '.join(LAYOUTS)}")
+  lay = LAYOUTS[name]
+  _check_fields(builder.data_dir, feats, lay)
   if "tasks" not in meta:
     raise DatasetError(f"{builder.data_dir}: metadata has no task list (not a skillplug dataset?)")
   obs = feats["steps"]["observation"]
   image_size = None
-  if f"{CAMERAS[0]}_rgb" in obs:
-    h, w, _ = obs[f"{CAMERAS[0]}_rgb"].shape
+  if f"{lay.cameras[0]}_rgb" in obs:
+    h, w, _ = obs[f"{lay.cameras[0]}_rgb"].shape
     image_size = (h, w)
-  return DatasetSpec(tasks=tuple(meta["tasks"]), image_size=image_size)
+  return DatasetSpec(tasks=tuple(meta["tasks"]), image_size=image_size, layout=name)
 
 
-def _check_fields(where, feats):
+def _check_fields(where, feats, lay: Layout = DISCOVERSE):
   names = set(feats.keys())
   if "steps" not in names or "episode_metadata" not in names:
     raise DatasetError(f"{where}: not RLDS: expected 'steps' and 'episode_metadata', found {sorted(names)}")
   steps = feats["steps"]
   missing = [k for k in REQUIRED_STEP_FIELDS if k not in steps.keys()]
-  missing += [f"observation/{k}" for k in REQUIRED_OBS_FIELDS if k not in steps["observation"].keys()]
-  missing += [f"episode_metadata/{k}" for k in REQUIRED_META_FIELDS
+  missing += [f"observation/{k}" for k, _ in lay.state if k not in steps["observation"].keys()]
+  missing += [f"episode_metadata/{k}" for k in REQUIRED_META_FIELDS + (("language_instruction",) if lay.language else ())
               if k not in feats["episode_metadata"].keys()]
   if missing:
     raise DatasetError(f"{where}: missing fields {missing}")
   adim = steps["action"].shape
-  if adim != (ACTION_DIM,):
-    raise DatasetError(f"{where}: action has shape {adim}, expected ({ACTION_DIM},) "
-                       "(6 joint targets + gripper opening)")
-  sdim = steps["observation"]["object_state"].shape
-  if sdim != (envs.OBJECT_STATE_DIM,):
-    raise DatasetError(f"{where}: object_state has shape {sdim}, expected ({envs.OBJECT_STATE_DIM},)")
+  if adim != (lay.action_dim,):
+    raise DatasetError(f"{where}: action has shape {adim}, expected ({lay.action_dim},) ({lay.action_meaning})")
+  for k, width in lay.state:
+    sdim = steps["observation"][k].shape
+    if sdim != (width,):
+      raise DatasetError(f"{where}: {k} has shape {sdim}, expected ({width},) (the {lay.name} layout)")
 
 
 def read_episodes(builder) -> Iterator[tuple[dict, dict]]:

@@ -1,0 +1,96 @@
+"""LIBERO demonstrations: drawn starts apart from the benchmark's init states, the experts recorded
+into our RLDS layout for LIBERO (proprioception, object state, both cameras, the instruction), read
+back by the loader; names and mixes that cannot work refused with the reason."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import mujoco
+import numpy as np
+import pytest
+
+import envs
+from envs.libero import layout, predicates, starts, suites
+from envs.libero import scene as scenes
+from skillplug_jax.data import demos, loader, rlds
+
+TASK = "libero_object:0"  # pick up the alphabet soup and place it in the basket
+
+
+@pytest.fixture(scope="module")
+def dataset(tmp_path_factory):
+  cfg = demos.DemoConfig(taskset=TASK, demos=2, images=True, image_size=(32, 32), batch=2, backend="mujoco")
+  return cfg, demos.make_demos(cfg, out=tmp_path_factory.mktemp("libero_ds"), progress=False)
+
+
+def test_drawn_starts_are_new_placements_of_the_same_scene():
+  drawn = starts.starts("libero_object", 0, 3, seed=0)
+  bench = suites.init_states("libero_object", 0)
+  assert drawn.shape == (3, bench.shape[1])
+  assert starts.check_distinct("libero_object", 0, drawn) > 1e-3  # no drawn start is a benchmark one
+  assert np.array_equal(starts.starts("libero_object", 0, 2, seed=0), drawn[:2])  # a seed's sequence
+  s = scenes.scene("libero_object", 0)
+  model = scenes.model(s)
+  data = mujoco.MjData(model)
+  goal = predicates.compile_goal(s, model)
+  fixtures = {model.body(o["body"]).id for o in s.meta["objects"].values() if o["kind"] == "fixture"}
+  movable = {model.body(o["body"]).id for o in s.meta["objects"].values() if o["kind"] == "object"}
+  for state in drawn:
+    scenes.set_init_state(model, data, state)
+    assert not predicates.satisfied(goal, predicates.state_of(goal, data))[0]  # the task is still to do
+    assert starts.penetration(model, data, movable, fixtures) <= starts.MAX_PENETRATION
+  # The objects lie where LIBERO's samplers put them in the benchmark: within its spread of positions.
+  adr = [o["joints"][0]["qposadr"] for o in s.meta["objects"].values() if o["kind"] == "object"]
+  for a in adr:
+    lo, hi = bench[:, 1 + a:3 + a].min(0) - 0.05, bench[:, 1 + a:3 + a].max(0) + 0.05
+    assert np.all((drawn[:, 1 + a:3 + a] >= lo) & (drawn[:, 1 + a:3 + a] <= hi))
+
+
+def test_a_libero_dataset_holds_successful_expert_episodes_with_their_instruction(dataset):
+  cfg, path = dataset
+  builder = rlds.open_dataset(path)
+  assert rlds.spec_of(builder) == rlds.DatasetSpec((TASK,), (32, 32), "libero")
+  d = loader.load_demonstrations(path, images=True)
+  assert d.layout is rlds.LIBERO and d.num_episodes == 2
+  assert d.language == ("pick up the alphabet soup and place it in the basket",)
+  widths = {k: v.shape[1:] for k, v in d.steps.items()}
+  assert widths == {"joint_pos": (7,), "gripper_qpos": (2,), "eef_pos": (3,), "eef_quat": (4,),
+                    "object_state": (layout.OBJECT_STATE_DIM,), "agentview_rgb": (32, 32, 3),
+                    "eye_in_hand_rgb": (32, 32, 3), "action": (7,)}
+  s = scenes.scene("libero_object", 0)
+  soup = layout.movable_objects(s.meta).index("alphabet_soup_1")
+  for e in range(d.num_episodes):
+    ep = d.episode(e)
+    assert np.all(np.abs(ep["action"]) <= 1.0)
+    # the can starts on the floor and ends in the basket, lower than it was carried, the fingers open
+    z = ep["object_state"][:, 7 * soup + 2]
+    assert z.max() > z[-1] + 0.05, "the can was lifted and put down"
+    assert ep["gripper_qpos"][-1, 0] - ep["gripper_qpos"][-1, 1] > 0.06, "released: the fingers open"
+    assert ep["agentview_rgb"].std() > 10 and not np.array_equal(ep["eye_in_hand_rgb"][0], ep["eye_in_hand_rgb"][-1])
+    assert len(ep["action"]) < suites.TIME_LIMITS["libero_object"] + 10
+  meta = builder.info.metadata
+  assert meta["per_task"][TASK]["kept"] == 2 and meta["layout"] == "libero"
+  batch = loader.ChunkLoader(d, 4, chunk=5, images=True).numpy_batch(0)
+  assert {"gripper_qpos", "eef_pos", "eef_quat", "agentview_rgb", "eye_in_hand_rgb"} <= set(batch)
+  assert batch["actions"].shape == (4, 5, 7)
+
+
+def test_the_dataset_is_reused_and_one_of_another_layout_is_refused(dataset):
+  cfg, path = dataset
+  assert demos.make_demos(cfg, out=path.parent, progress=False) == path
+  with pytest.raises(rlds.DatasetError, match="holds"):  # the same directory read as DISCOVERSE's
+    demos._reused(dataclasses.replace(cfg, taskset="jujube_pick"), path, False)
+
+
+def test_libero_names_and_mixes_that_cannot_work_are_refused():
+  assert envs.taskset("libero_goal")[:2] == ("libero_goal:0", "libero_goal:1")
+  assert envs.taskset("libero_10:9") == ("libero_10:9",)
+  with pytest.raises(ValueError, match="unknown task 12 of LIBERO suite 'libero_object'"):
+    envs.taskset("libero_object:12")
+  with pytest.raises(ValueError, match="mixes LIBERO and DISCOVERSE"):
+    demos.DemoConfig(taskset="libero_object,jujube_pick", backend="mujoco")
+  with pytest.raises(ValueError, match="C engine"):
+    demos.DemoConfig(taskset="libero_object", backend="mjx-warp")
+  with pytest.raises(ValueError, match="runs on envs.libero's engine"):
+    envs.make("libero_object:0", backend="mujoco")
