@@ -200,14 +200,14 @@ class LiberoBatch:
     return predicates.GoalInputs(b["xpos"], b["xmat"], b["site_xpos"], b["site_xmat"], self._a["qpos"].copy(),
                                  predicates.touching_from_sensors(self.goal, b["sensordata"]))
 
-  def observe(self) -> dict:
+  def observe(self, drawn: np.ndarray | None = None) -> dict:
     """LIBERO's observations of every environment, named as OffScreenRenderEnv names them and
     sampled when robosuite samples them (`_clock_tick`: after the 24th substep of a control step):
     joints at that moment, the end effector, the objects and the images from the state a substep
     earlier (what MjData's derived fields hold then). Quaternions are (x, y, z, w); robot0_eef_quat
     is the hand body's, robot0_eef_pos the grip site's, as robosuite has them. Images are
     upright ([B, H, W, 3] uint8): robosuite's are upside down (OpenGL's row order), which
-    LIBERO's users flip."""
+    LIBERO's users flip. `drawn`: the environments whose images are drawn (default: all)."""
     b, p = self._observed, self.params
     site = p.eef_site
     obs = {"robot0_joint_pos": b["now_qpos"][:, list(p.arm_qpos)].copy(),
@@ -218,7 +218,7 @@ class LiberoBatch:
       obs[f"{name}_pos"] = b["xpos"][:, body].copy()
       obs[f"{name}_quat"] = b["xquat"][:, body][:, [1, 2, 3, 0]].copy()
     if self._cameras is not None:
-      images = self._cameras.render(b["qpos"], np.arange(self.num_envs))
+      images = self._cameras.render(b["qpos"], np.arange(self.num_envs) if drawn is None else np.asarray(drawn))
       obs.update({f"{c}_image": images[c] for c in scenes.CAMERAS})
     return obs
 

@@ -86,3 +86,16 @@ def parse(name: str) -> Task:
   if not sep or not which:
     raise ValueError(f"a LIBERO task is named <suite>:<index>, e.g. libero_object:3; got {name!r}")
   return task(_check_suite(suite), int(which) if which.isdigit() else which)
+
+
+# The suites' names in the paper's and the field's tables (LIBERO-10 is "LIBERO-Long"), and the
+# letter our per-task columns use: O3 is LIBERO-Object's task 3.
+TITLES = {"libero_spatial": "Spatial", "libero_object": "Object", "libero_goal": "Goal", "libero_10": "Long",
+          "libero_90": "90"}
+_LETTERS = {"libero_spatial": "S", "libero_object": "O", "libero_goal": "G", "libero_10": "L", "libero_90": "N"}
+
+
+def abbr(name: str) -> str:
+  """A LIBERO task's column heading: its suite's letter and its index ("libero_object:3" -> "O3")."""
+  suite, _, which = name.partition(":")
+  return f"{_LETTERS[_check_suite(suite)]}{which}"

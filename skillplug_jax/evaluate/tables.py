@@ -39,8 +39,11 @@ def mean_se(values: Sequence[float]) -> tuple[float, float | None]:
 def abbr(task: str) -> str:
   """A task's column heading: its abbreviation (the toy's tasks: their primitive sequence, A>T>B)."""
   from envs import toy_skills
+  from envs.libero import suites as libero_suites
   if task in toy_skills.TASK_IDS:
     return toy_skills.task_name(toy_skills.TASK_IDS[task])
+  if libero_suites.is_libero(task):
+    return libero_suites.abbr(task)
   return envs.task_class(task).abbr
 
 

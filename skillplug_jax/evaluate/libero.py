@@ -1,0 +1,110 @@
+"""The evaluation protocol on LIBERO: the benchmark's paired trials, per-task and per-suite tables.
+
+Trial i of a task starts from the benchmark's init state i for every policy, as LIBERO's own
+evaluation and the field's do (50 per task), so two policies are compared on the same starts
+(`envs.libero.rollout`). Each trial has two outcomes: LIBERO's success (its predicate at some
+step within the suite's limit: what published LIBERO numbers count) and ours (placed and
+released, held 0.5 s). Tables are the project's (`tables.success_table`: a row per policy, a
+column per task, `Avg.` over tasks computed per training seed) and the paper's LIBERO layout: a
+column per suite (Spatial, Object, Goal, Long) and their average.
+
+A policy is an `envs.rollout.Controller` reading our LIBERO layout (`envs.libero.layout`), one per
+training seed; the seeds' results are aggregated as mean +- SE.
+"""
+
+from __future__ import annotations
+
+import os
+import sys
+from pathlib import Path
+from typing import Mapping, Sequence
+
+import numpy as np
+from tqdm import tqdm
+
+from envs.libero import rollout, suites
+from envs.rollout import Controller
+from skillplug_jax.evaluate import tables
+
+MEASURES = ("libero_success", "success")  # LIBERO's rule, ours
+
+
+def evaluate_task(name: str, controller: Controller, trials: int = suites.INIT_STATES_PER_TASK, videos: int = 0,
+                  video_dir: str | Path | None = None) -> dict:
+  """Both success rates of one controller on one LIBERO task, and every trial's outcomes (paired
+  by init state). videos > 0 writes the agentview camera of the first trials to
+  `video_dir/<suite>_<index>_trialNN.gif`."""
+  if videos and video_dir is None:
+    raise ValueError("videos need a video_dir")
+  r = rollout.run_trials(name, controller, trials, frames=videos)
+  if videos:
+    _write_videos(r.frames, Path(video_dir), name.replace(":", "_"))
+  task = suites.parse(name)
+  reached = r.first_success_step[r.libero_success]
+  return dict(task=name, abbr=suites.abbr(name), name=task.name, language=task.language, trials=trials,
+              success_rate=float(r.success.mean()), libero_success_rate=float(r.libero_success.mean()),
+              trial_success=r.success.tolist(), trial_libero_success=r.libero_success.tolist(),
+              median_steps=float(np.median(reached)) if reached.size else None, time_limit=task.time_limit)
+
+
+def _write_videos(frames: list, out: Path, stem: str, fps: int = 20) -> None:
+  import imageio.v3 as iio
+  out.mkdir(parents=True, exist_ok=True)
+  for i, video in enumerate(frames):
+    path = out / f"{stem}_trial{i:02d}.gif"
+    tmp = path.with_suffix(".tmp.gif")
+    iio.imwrite(tmp, video, duration=1000 / fps, loop=0)
+    os.replace(tmp, path)
+
+
+def evaluate(policies: Mapping[str, Sequence[Controller]], tasks: Sequence[str],
+             trials: int = suites.INIT_STATES_PER_TASK, progress: bool = True) -> dict:
+  """Every policy (its controllers: one per training seed) on every task; the results and tables."""
+  results = []
+  jobs = [(p, s, t) for p, seeds in policies.items() for s in range(len(seeds)) for t in tasks]
+  for policy, seed, task in tqdm(jobs, desc="LIBERO trials", unit="task", file=sys.stderr, disable=not progress):
+    results.append({"policy": policy, "seed": seed, **evaluate_task(task, policies[policy][seed], trials)})
+  return {"results": results, "tables": {m: tables_of(results, tasks, m) for m in MEASURES}}
+
+
+def tables_of(results: Sequence[dict], tasks: Sequence[str], measure: str = "libero_success") -> dict:
+  """The per-task table and the paper's per-suite table of `measure` ("libero_success" or
+  "success"), from `evaluate`'s results."""
+  if measure not in MEASURES:
+    raise ValueError(f"unknown measure {measure!r}; measures: {', '.join(MEASURES)}")
+  key = f"{measure}_rate"
+  rates: dict = {}
+  for r in results:
+    rates.setdefault(r["policy"], {}).setdefault(r["task"], {})[r["seed"]] = r[key]
+  per_task = {p: {t: [by_seed[s] for s in sorted(by_seed)] for t, by_seed in row.items()} for p, row in rates.items()}
+  return {"per_task": tables.success_table(per_task, tasks), "per_suite": suite_table(per_task, tasks)}
+
+
+def suite_table(rates: Mapping[str, Mapping[str, Sequence[float]]], tasks: Sequence[str]) -> dict:
+  """The paper's LIBERO layout: a row per policy, a column per suite (its tasks' mean success,
+  computed per seed) and `Avg.` over the suites, each mean +- SE over seeds (%)."""
+  by_suite: dict = {}
+  for t in tasks:
+    by_suite.setdefault(suites.parse(t).suite, []).append(t)
+  titles = [suites.TITLES[s] for s in by_suite]
+  rows = {}
+  for policy, per_task in rates.items():
+    n = len(per_task[tasks[0]])
+    suite_means = {s: [100 * float(np.mean([per_task[t][k] for t in ts])) for k in range(n)] for s, ts in by_suite.items()}
+    cells = {suites.TITLES[s]: tables.mean_se(v) for s, v in suite_means.items()}
+    cells["Avg."] = tables.mean_se([float(np.mean([suite_means[s][k] for s in by_suite])) for k in range(n)])
+    rows[policy] = {"cells": cells, "seeds": n}
+  return {"suites": titles, "tasks": {suites.TITLES[s]: ts for s, ts in by_suite.items()}, "rows": rows}
+
+
+def markdown(table: dict) -> str:
+  """A per-suite table (`suite_table`) as markdown: mean +- SE (%), the SE left out for one seed."""
+  cols = table["suites"] + ["Avg."]
+  lines = ["| policy | " + " | ".join(cols) + " |", "|---|" + "---|" * len(cols)]
+  for policy, row in table["rows"].items():
+    cells = []
+    for c in cols:
+      mean, se = row["cells"][c]
+      cells.append(f"{mean:.1f}" if se is None else f"{mean:.1f} ± {se:.1f}")
+    lines.append(f"| {policy} | " + " | ".join(cells) + " |")
+  return "\n".join(lines)

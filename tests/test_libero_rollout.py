@@ -1,0 +1,90 @@
+"""Closed-loop LIBERO trials of a policy (envs/libero/rollout.py) and their tables
+(skillplug_jax/evaluate/libero.py): the expert's actions replayed through a jitted controller
+succeed on the benchmark's init states as the expert does; a policy that never lets go succeeds by
+LIBERO's rule and not by ours; a still arm by neither; a camera policy sees both cameras at its size."""
+
+from __future__ import annotations
+
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from envs.libero import engine, expert, rollout, scene, suites
+from envs.rollout import Controller
+from skillplug_jax.evaluate import libero as libero_eval
+
+TASK = "libero_object:1"  # pick up the cream cheese and place it in the basket
+TRIALS = 2
+
+
+@pytest.fixture(scope="module")
+def expert_actions():
+  """The expert's actions and phases [T, B] from the first init states, recorded as run() drives it."""
+  t = suites.parse(TASK)
+  b = engine.LiberoBatch(scene.scene(t.suite, t.index), TRIALS, nthread=1)
+  b.reset(suites.init_states(t.suite, t.index)[:TRIALS])
+  for _ in range(suites.SETTLE_STEPS):
+    b.step(np.tile(rollout.REST, (TRIALS, 1)))
+  e = expert.Expert(b)
+  actions, phases = [], []
+  for _ in range(t.time_limit):
+    actions.append(e.act())
+    phases.append(e.phase.copy())
+    b.step(actions[-1])
+  return np.stack(actions).astype(np.float32), np.stack(phases)
+
+
+def replay(actions: np.ndarray) -> Controller:
+  return Controller(lambda s: (), lambda w, c, s, t: (w[jnp.minimum(t, w.shape[0] - 1)], c, {}), 0, "replay",
+                    jnp.asarray(actions))
+
+
+def test_the_experts_actions_replayed_as_a_policy_succeed_as_the_expert(expert_actions):
+  actions, _ = expert_actions
+  row = libero_eval.evaluate_task(TASK, replay(actions), trials=TRIALS)
+  assert row["trial_success"] == [True] * TRIALS and row["trial_libero_success"] == [True] * TRIALS
+  assert expert.run("libero_object", 1, trials=TRIALS, nthread=1)["success"] == 1.0
+  assert row["abbr"] == "O1" and row["median_steps"] < row["time_limit"]
+
+
+def test_holding_on_is_libero_success_but_not_ours(expert_actions):
+  actions, phases = expert_actions
+  clumsy = actions.copy()
+  clumsy[:, :, 6] = np.where(phases >= expert.CLOSE, 1.0, clumsy[:, :, 6])  # never opens once it has closed
+  r = rollout.run_trials(TASK, replay(clumsy), trials=TRIALS, nthread=1)
+  assert r.libero_success.all() and not r.success.any()
+  assert r.steps_run == suites.TIME_LIMITS["libero_object"]
+
+
+def test_a_still_arm_succeeds_by_neither_rule():
+  still = np.tile(rollout.REST, (1, TRIALS, 1)).astype(np.float32)
+  r = rollout.run_trials(TASK, replay(still), trials=TRIALS, nthread=1)
+  assert not r.libero_success.any() and not r.success.any()
+
+
+def test_a_camera_policy_reads_both_cameras_at_its_size(expert_actions):
+  seen = {}
+
+  def act(w, c, s, t):  # the expert's actions, from a controller that is handed the cameras
+    seen.update({k: v.shape for k, v in s.obs.items()})  # at trace time
+    return w[jnp.minimum(t, w.shape[0] - 1)], c, {}
+
+  policy = Controller(lambda s: (), act, 0, "camera", jnp.asarray(expert_actions[0][:, :1]), (24, 24))
+  r = rollout.run_trials(TASK, policy, trials=1, nthread=1)
+  assert seen["agentview_rgb"] == (1, 24, 24, 3) and seen["eye_in_hand_rgb"] == (1, 24, 24, 3)
+  assert seen["object_state"] == (1, 64) and seen["joint_pos"] == (1, 7) and seen["gripper_qpos"] == (1, 2)
+  assert r.success.all()
+  with pytest.raises(ValueError, match="square"):
+    rollout.run_trials(TASK, policy._replace(image_size=(24, 32)), trials=1)
+  with pytest.raises(ValueError, match="init states 0..49"):
+    rollout.run_trials(TASK, policy, trials=2, first=49)
+
+
+def test_the_suite_table_averages_tasks_per_seed_then_suites():
+  rates = {"p": {"libero_object:0": [1.0, 0.5], "libero_object:1": [0.0, 0.5], "libero_goal:0": [1.0, 1.0]}}
+  table = libero_eval.suite_table(rates, list(rates["p"]))
+  cells = table["rows"]["p"]["cells"]
+  assert table["suites"] == ["Object", "Goal"]
+  assert cells["Object"] == (50.0, 0.0) and cells["Goal"] == (100.0, 0.0)
+  assert cells["Avg."] == (75.0, 0.0)
+  assert "| p | 50.0 ± 0.0 | 100.0 ± 0.0 | 75.0 ± 0.0 |" in libero_eval.markdown(table)
