@@ -52,3 +52,9 @@ def check_backend(name: str, where: str) -> str:
   if name not in ENGINES:
     raise _unknown(name)
   return name
+
+
+# LIBERO's observations as our datasets and policies name them (envs/libero/layout.py says what each
+# holds): its cameras, and its proprioception fields with their widths.
+LIBERO_CAMERAS = ("agentview", "eye_in_hand")
+LIBERO_PROPRIO = (("joint_pos", 7), ("gripper_qpos", 2), ("eef_pos", 3), ("eef_quat", 4))

@@ -172,6 +172,9 @@ def cmd_eval(args) -> int:
   runs = _expand_seeds([r for part in args.runs for r in part.split(",") if r], args.seeds)
   tasks = [n for part in args.taskset.split(",") for n in envs.taskset(part)]
   video_dir = args.video_dir or (f"{args.out}_videos" if args.out else "videos")
+  from envs.libero import suites as libero_suites
+  if any(libero_suites.is_libero(t) for t in tasks):
+    return _libero_eval(args, runs, tasks, video_dir)
   out = protocol.evaluate_runs(runs, tasks, args.trials, seed=args.seed, batch=args.batch,
                                query_every=args.query_every, videos=args.videos, video_dir=video_dir,
                                backend=args.backend, appearance=args.appearance,
@@ -181,6 +184,29 @@ def cmd_eval(args) -> int:
   print(report.write(out, f"{args.trials} paired trials per task (seed {args.seed}{shift})", args.out))
   if args.videos:
     print(f"videos of the first {args.videos} trials per task: {video_dir}/<run>/<task>_trialNN.gif")
+  return 0
+
+
+def _libero_eval(args, runs: list[str], tasks: list[str], video_dir: str) -> int:
+  """`skillplug eval` on LIBERO tasks: the benchmark's init states as the paired trials."""
+  from envs.libero import suites
+  from skillplug_jax.atomic_json import write_json_atomic, write_text_atomic
+  from skillplug_jax.evaluate import libero
+
+  if not all(suites.is_libero(t) for t in tasks):
+    raise SystemExit("skillplug eval: LIBERO and DISCOVERSE tasks are evaluated separately")
+  if args.trials > suites.INIT_STATES_PER_TASK:
+    raise SystemExit(f"skillplug eval: LIBERO has {suites.INIT_STATES_PER_TASK} init states per task; "
+                     f"--trials {args.trials} is more")
+  out = libero.evaluate_runs(runs, tasks, args.trials, args.videos, video_dir)
+  text = libero.report(out)
+  print("\n" + text)
+  if args.out:
+    write_json_atomic(f"{args.out}.json", out)
+    write_text_atomic(f"{args.out}.md", text + "\n")
+    print(f"wrote {args.out}.json, {args.out}.md")
+  if args.videos:
+    print(f"videos of the first {args.videos} trials per task: {video_dir}/<run>/<suite>_<index>_trialNN.gif")
   return 0
 
 

@@ -29,6 +29,7 @@ NAN, INF = math.nan, math.inf
 REJECTED = [
     ("model", "policy", "diffusion"), ("model", "use_images", "yes"), ("model", "cameras", ()),
     ("model", "cameras", ("side", "side")), ("model", "cameras", ("top",)), ("model", "cameras", ["side"]),
+    ("model", "proprio", ()), ("model", "proprio", ("joint_pos", "joint_pos")), ("model", "proprio", ("eef_rot",)),
     ("model", "image_size", (64,)), ("model", "image_size", (0, 64)), ("model", "joint_dim", 0),
     ("model", "action_dim", 0), ("model", "chunk", 0), ("model", "hidden", 0), ("model", "heads", 0),
     ("model", "ff", 0), ("model", "enc_layers", -1), ("model", "dec_layers", 0),
@@ -74,7 +75,7 @@ REJECTED = [
 ACCEPTED = [
     ("model", "enc_layers", 0), ("model", "cvae_enc_layers", 0), ("model", "dropout", 0.0),
     ("model", "dropout", 1.0), ("model", "embed_init_std", 0.0), ("plug", "num_skills", 1),
-    ("model", "dtype", "bfloat16"), ("model", "cameras", ("wrist",)), ("plug", "router_cue_slots", 0),
+    ("model", "dtype", "bfloat16"), ("model", "cameras", ("wrist",)), ("model", "cameras", ("agentview", "eye_in_hand")), ("plug", "router_cue_slots", 0),
     ("plug", "fusion_weights", "uniform"), ("model", "adapter_width", 0),
     *[("loss", name, 0.0) for name in ("rec", "kl", "bsa", "sd", "cvae_kl")],
     ("train", "max_steps", 0), ("train", "warmup_steps", 0), ("train", "grad_clip", 0.0),
@@ -135,6 +136,10 @@ def test_the_messages_read_as_documented():
   with pytest.raises(ValueError, match="state-only"):
     ModelConfig(use_images=True, object_tokens="per_object")
   assert ModelConfig(use_images=False, object_tokens="per_object").object_tokens == "per_object"
+  libero = ("joint_pos", "gripper_qpos", "eef_pos", "eef_quat")
+  with pytest.raises(ValueError, match=re.escape(f"model.joint_dim must be the width of proprio {libero} (16), got 7")):
+    ModelConfig(proprio=libero)
+  assert ModelConfig(proprio=libero, joint_dim=16).joint_dim == 16
 
 
 def test_overrides_name_the_key_they_were_given():

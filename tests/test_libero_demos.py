@@ -94,3 +94,29 @@ def test_libero_names_and_mixes_that_cannot_work_are_refused():
     demos.DemoConfig(taskset="libero_object", backend="mjx-warp")
   with pytest.raises(ValueError, match="runs on envs.libero's engine"):
     envs.make("libero_object:0", backend="mujoco")
+
+
+@pytest.mark.slow
+def test_a_policy_trained_on_a_libero_dataset_runs_closed_loop_on_libero(tmp_path):
+  """The path a LIBERO experiment takes: demonstrations, ACT reading LIBERO's proprioception (16
+  numbers) and object state, its checkpoint as a controller, trials on the benchmark's init states."""
+  from skillplug_jax import experiment
+  from skillplug_jax.evaluate import libero as libero_eval
+  from skillplug_jax.evaluate.policy_controller import load_controller
+  from skillplug_jax.train import config, loop
+
+  cfg = config.override(experiment.preset("quick", "skillplug"), [
+      f"taskset={TASK}", "demos=2", f"data_dir={tmp_path / 'data'}", f"workdir={tmp_path / 'run'}",
+      "model.proprio=joint_pos,gripper_qpos,eef_pos,eef_quat", "model.joint_dim=16", "model.hidden=32",
+      "model.heads=2", "model.ff=64", "model.enc_layers=1", "model.dec_layers=1", "model.cvae_enc_layers=1",
+      "model.chunk=10", "batch_size=4", "max_steps=4", "ckpt_every=4", "warmup_steps=1"])
+  run = loop.train(cfg, progress=False)
+  controller, trained = load_controller(run)
+  assert trained.model.proprio == ("joint_pos", "gripper_qpos", "eef_pos", "eef_quat")
+  assert set(controller.weights["stats"]) == {"action", "joint_pos", "gripper_qpos", "eef_pos", "eef_quat",
+                                              "object_state"}
+  assert controller.weights["params"]["encoder"]["joint_proj"]["kernel"].shape == (16, 32)
+  row = libero_eval.evaluate_task(TASK, controller, trials=2)
+  assert row["trials"] == 2 and len(row["trial_libero_success"]) == 2
+  # four steps of training do not solve the task: both rules agree there is no success
+  assert row["success_rate"] == 0.0 and row["libero_success_rate"] == 0.0

@@ -88,3 +88,17 @@ def test_the_suite_table_averages_tasks_per_seed_then_suites():
   assert cells["Object"] == (50.0, 0.0) and cells["Goal"] == (100.0, 0.0)
   assert cells["Avg."] == (75.0, 0.0)
   assert "| p | 50.0 ± 0.0 | 100.0 ± 0.0 | 75.0 ± 0.0 |" in libero_eval.markdown(table)
+
+
+def test_trial_i_starts_from_the_benchmarks_init_state_i(monkeypatch):
+  seen = []
+  original = engine.LiberoBatch.reset
+
+  def reset(self, states):
+    seen.append(np.array(states))
+    return original(self, states)
+
+  monkeypatch.setattr(engine.LiberoBatch, "reset", reset)
+  still = np.tile(rollout.REST, (1, 2, 1)).astype(np.float32)
+  rollout.run_trials("libero_spatial:0", replay(still), trials=2, first=7, nthread=1)
+  assert np.array_equal(seen[0], suites.init_states("libero_spatial", 0)[7:9])

@@ -8,19 +8,22 @@ the fixtures' joints (drawers, doors, knobs) in the scene's order, zero-padded t
 that one policy reads every task of the four suites (8 objects and 4 fixture joints at most).
 The cameras keep LIBERO's names, as its datasets do: agentview and eye_in_hand.
 
-Importing this module loads neither LIBERO nor MuJoCo.
+Importing this module loads neither LIBERO nor MuJoCo. The names and widths that configs check
+are in `envs.names`.
 """
 
 from __future__ import annotations
 
 import numpy as np
 
+from envs.names import LIBERO_CAMERAS, LIBERO_PROPRIO
+
 OBJECT_SLOTS = 8  # LIBERO-10's widest scenes have 8 movable objects
 JOINT_SLOTS = 8  # fixture joints (LIBERO-Spatial's cabinet and stove: 4)
 OBJECT_STATE_DIM = 7 * OBJECT_SLOTS + JOINT_SLOTS
-PROPRIO = (("joint_pos", 7), ("gripper_qpos", 2), ("eef_pos", 3), ("eef_quat", 4))
+PROPRIO = LIBERO_PROPRIO
 STATE = PROPRIO + (("object_state", OBJECT_STATE_DIM),)
-CAMERAS = ("agentview", "eye_in_hand")  # the dataset's names of scene.CAMERAS, in that order
+CAMERAS = LIBERO_CAMERAS  # the dataset's names of scene.CAMERAS, in that order
 _OBSERVED = {"joint_pos": "robot0_joint_pos", "gripper_qpos": "robot0_gripper_qpos", "eef_pos": "robot0_eef_pos",
              "eef_quat": "robot0_eef_quat"}
 

@@ -43,15 +43,20 @@ def starts(suite: str, which: int | str, n: int, seed: int = 0, progress: bool =
     raise ValueError(f"n must be >= 1, got {n}")
   s = scenes.scene(suite, which)
   path = _cache_path(s, seed)
+  have = 0
   if path.exists():
     cached = np.load(path)
-    if len(cached) >= n and cached.shape[1] == s.meta["state_width"]:
-      return cached[:n]
-  drawn = _draw(s, n, seed, progress)
+    if cached.shape[1] == s.meta["state_width"]:
+      if len(cached) >= n:
+        return cached[:n]
+      have = len(cached)
+  # The sequence is drawn again from its seed; asking for at least twice what the cache held keeps
+  # a caller that asks for a few more at a time (demos.py's batches) from redrawing it each time.
+  drawn = _draw(s, max(n, 2 * have), seed, progress)
   tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp.npy")
   np.save(tmp, drawn)
   os.replace(tmp, path)
-  return drawn
+  return drawn[:n]
 
 
 @contextlib.contextmanager

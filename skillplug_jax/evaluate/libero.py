@@ -67,6 +67,48 @@ def evaluate(policies: Mapping[str, Sequence[Controller]], tasks: Sequence[str],
   return {"results": results, "tables": {m: tables_of(results, tasks, m) for m in MEASURES}}
 
 
+def evaluate_runs(run_dirs: Sequence[str | Path], tasks: Sequence[str], trials: int = suites.INIT_STATES_PER_TASK,
+                  videos: int = 0, video_dir: str | Path = "videos", progress: bool = True) -> dict:
+  """Trained runs (`skillplug pretrain` on a LIBERO taskset) on LIBERO tasks. Runs whose training
+  configurations differ only in the seed are one row's seeds (`groups`, as `protocol.evaluate_runs`)."""
+  from skillplug_jax import experiment
+  from skillplug_jax.evaluate import groups
+  from skillplug_jax.evaluate.policy_controller import load_controller
+  loaded = [(run, *load_controller(run)) for run in run_dirs]  # every checkpoint first: fail before any trial
+  fields = {run: groups.row_fields(cfg, experiment.read_record(run)) for run, _, cfg in loaded}
+  rows = groups.group_rows(list(fields.values()))
+  name_of = {groups.key_id(row["config"]): name for name, row in rows.items()}
+  results = []
+  jobs = [(run, c, cfg, t) for run, c, cfg in loaded for t in tasks]
+  for run, controller, cfg, task in tqdm(jobs, desc="LIBERO trials", unit="task", file=sys.stderr,
+                                         disable=not progress):
+    r = evaluate_task(task, controller, trials, videos, Path(video_dir) / Path(run).name)
+    row = fields[run]
+    results.append({"policy": name_of[groups.key_id(row["config"])], "seed": row["train_seed"], "run": str(run), **r})
+  return {"trials": trials, "results": results, "rows": rows,
+          "tables": {m: tables_of(results, tasks, m) for m in MEASURES}}
+
+
+def report(out: dict) -> str:
+  """The per-suite tables of both rules and the per-task table of LIBERO's, as markdown."""
+  lines = []
+  for measure, title in (("libero_success", "LIBERO's success (its predicate at any step within the limit)"),
+                         ("success", "our success (placed, released, held 0.5 s)")):
+    t = out["tables"][measure]
+    lines += [f"**{title}**, {out['trials']} paired trials per task (the benchmark's init states), %:", "",
+              markdown(t["per_suite"]), ""]
+    if measure == "libero_success":
+      per_task = t["per_task"]
+      cols = per_task["abbr"] + ["Avg."]
+      lines += ["| policy | " + " | ".join(cols) + " |", "|---|" + "---|" * len(cols)]
+      for policy, row in per_task["rows"].items():
+        cells = [row["cells"][c] for c in per_task["tasks"]] + [row["cells"]["Avg."]]
+        lines.append(f"| {policy} | " + " | ".join(f"{m:.0f}" if se is None else f"{m:.0f} ± {se:.0f}"
+                                                   for m, se in cells) + " |")
+      lines.append("")
+  return "\n".join(lines)
+
+
 def tables_of(results: Sequence[dict], tasks: Sequence[str], measure: str = "libero_success") -> dict:
   """The per-task table and the paper's per-suite table of `measure` ("libero_success" or
   "success"), from `evaluate`'s results."""

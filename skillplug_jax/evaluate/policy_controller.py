@@ -57,7 +57,7 @@ def policy_controller(model: ModelConfig, params, stats: dict, *, query_every: i
     raise ValueError("routing_smoothing needs an ACT+SkillPlug policy, its own router (no fixed routing) "
                      "and a query every step with temporal ensembling")
   init, act = _controller_fns(model, query_every, temporal, ensemble_k, fixed, float(routing_smoothing))
-  inputs = ("action", "joint_pos") + (("object_state",) if model.normalize_object_state else ())
+  inputs = ("action",) + tuple(model.proprio) + (("object_state",) if model.normalize_object_state else ())
   missing = [k for k in inputs if k not in stats]
   if missing:
     raise ValueError(f"the normalisation statistics have no {', '.join(missing)} entry "
@@ -80,8 +80,11 @@ def _controller_fns(model: ModelConfig, query_every: int, temporal: bool, ensemb
 
   def predict(weights, state, routing=routing):
     obs, st = state.obs, weights["stats"]
-    x = {"joint_pos": (obs["joint_pos"] - st["joint_pos"]["mean"]) / st["joint_pos"]["std"],
-         "object_state": envs.padded_object_state(obs["object_state"])}
+    x = {k: (obs[k] - st[k]["mean"]) / st[k]["std"] for k in model.proprio}
+    # A DISCOVERSE task's object state is padded to the datasets' width; LIBERO's layout comes padded.
+    width = st["object_state"]["mean"].shape[-1] if "object_state" in st else envs.OBJECT_STATE_DIM
+    x["object_state"] = (obs["object_state"] if obs["object_state"].shape[-1] == width
+                         else envs.padded_object_state(obs["object_state"]))
     if model.normalize_object_state:
       x["object_state"] = (x["object_state"] - st["object_state"]["mean"]) / st["object_state"]["std"]
     if model.use_images:

@@ -94,6 +94,13 @@ def num_tokens(config: ModelConfig, object_width: int = OBJECT_STATE_DIM) -> int
   return 2 + len(config.cameras) * h * w
 
 
+def proprioception(obs: Mapping[str, jnp.ndarray], config: ModelConfig) -> jnp.ndarray:
+  """The fields of `config.proprio`, concatenated [B, joint_dim]: what the joint token reads."""
+  if len(config.proprio) == 1:
+    return obs[config.proprio[0]]
+  return jnp.concatenate([obs[k] for k in config.proprio], axis=-1)
+
+
 class Encoder(nn.Module):
   """f_enc: backbone, input projections and the transformer encoder.
 
@@ -107,7 +114,7 @@ class Encoder(nn.Module):
     cfg, dt = self.config, self.config.compute_dtype
     batch = style_z.shape[0]
     style = nn.Dense(cfg.hidden, dtype=dt, name="style_proj")(style_z.astype(dt))
-    joint = nn.Dense(cfg.hidden, dtype=dt, name="joint_proj")(obs["joint_pos"].astype(dt))
+    joint = nn.Dense(cfg.hidden, dtype=dt, name="joint_proj")(proprioception(obs, cfg).astype(dt))
     contents = [jnp.stack([style, joint], axis=1)]
     pos = [self.param("token_pos", _embed_init(cfg), (2, cfg.hidden)).astype(dt)]
     if cfg.use_images:

@@ -11,11 +11,16 @@ from typing import Tuple
 
 import jax.numpy as jnp
 
-from envs.names import CAMERAS  # cheap: not the suite (envs/__init__.py)
+from envs.names import CAMERAS, LIBERO_CAMERAS, LIBERO_PROPRIO  # cheap: not the suite (envs/__init__.py)
 from skillplug_jax import validation
 from skillplug_jax.model.plug import PlugConfig
 
 POLICIES = ("act", "skillplug")
+# The cameras a policy may read: our tabletop's and LIBERO's (envs/libero/layout.py).
+CAMERA_NAMES = CAMERAS + LIBERO_CAMERAS
+# The proprioception fields a policy may read and their widths: DISCOVERSE datasets hold joint_pos
+# (7: six joints and the gripper), LIBERO's joint_pos (the arm's 7 joints) and the rest.
+PROPRIO_WIDTHS = dict(LIBERO_PROPRIO)
 POSITIONS = ("input", "qk")
 # A reading of the paper's text (issue 27); the first value is the paper's configuration as first
 # built, and the default.
@@ -50,7 +55,8 @@ _count, _number, _one_of = validation.count, validation.number, validation.one_o
 # tokens are then their projections; the decoder needs a layer to read).
 _RULES = dict(
     policy=_one_of(POLICIES), use_images=validation.flag(),
-    cameras=validation.each(_one_of(CAMERAS), nonempty=True, distinct=True),
+    cameras=validation.each(_one_of(CAMERA_NAMES), nonempty=True, distinct=True),
+    proprio=validation.each(_one_of(tuple(PROPRIO_WIDTHS)), nonempty=True, distinct=True),
     image_size=validation.each(_count(1), length=2), joint_dim=_count(1), action_dim=_count(1),
     chunk=_count(1), hidden=_count(1), heads=_count(1), ff=_count(1), enc_layers=_count(0),
     dec_layers=_count(1), decoder_first_layer_only=validation.flag(), dropout=_number(0, 1),
@@ -60,6 +66,10 @@ _RULES = dict(
     backbone_stages=validation.each(_count(1), nonempty=True), object_tokens=_one_of(OBJECT_TOKENS),
     adapter_width=_count(0), dtype=_one_of(DTYPES))
 _RELATIONS = (
+    validation.Relation("joint_dim", lambda c: c.proprio == ("joint_pos",)
+                        or c.joint_dim == sum(PROPRIO_WIDTHS[k] for k in c.proprio),
+                        lambda c: f"the width of proprio {c.proprio} "
+                                  f"({sum(PROPRIO_WIDTHS.get(k, 0) for k in c.proprio)})"),
     validation.Relation("hidden", lambda c: c.hidden % c.heads == 0,
                         lambda c: f"divisible by heads ({c.heads})"),
     validation.Relation("object_tokens", lambda c: not (c.use_images and c.object_tokens == "per_object"),
@@ -83,6 +93,9 @@ class ModelConfig:
   use_images: bool = True  # False: the state-only variant (object_state token)
   cameras: Tuple[str, ...] = ("side", "wrist")  # batch keys are f"{cam}_rgb"
   image_size: Tuple[int, int] = (64, 64)  # (H, W) of the rendered images
+  # The proprioception the joint token reads, concatenated in this order (joint_dim wide): our
+  # tabletop's joint_pos; LIBERO policies read ("joint_pos", "gripper_qpos", "eef_pos", "eef_quat"), 16.
+  proprio: Tuple[str, ...] = ("joint_pos",)
   joint_dim: int = 7
   action_dim: int = 7
   chunk: int = 25

@@ -37,7 +37,8 @@ from typing import Mapping, Optional
 import flax.linen as nn
 import jax.numpy as jnp
 
-from skillplug_jax.model.act import OBJECT_SLOT_DIM, ActionHead, ActionProjection, Adapter, CVAEEncoder, Encoder
+from skillplug_jax.model.act import (OBJECT_SLOT_DIM, ActionHead, ActionProjection, Adapter, CVAEEncoder, Encoder,
+                                    proprioception)
 from skillplug_jax.model.config import ModelConfig
 from skillplug_jax.model.plug import SkillPlug
 from skillplug_jax.model.posterior import reparameterise
@@ -75,7 +76,7 @@ class Policy(nn.Module):
     """
     cfg, deterministic = self.config, not train
     actions, mask = batch["actions"], batch["action_mask"]
-    cvae_mu, cvae_logvar = self.cvae(batch["joint_pos"], actions, mask, deterministic)
+    cvae_mu, cvae_logvar = self.cvae(proprioception(batch, cfg), actions, mask, deterministic)
     style_z = reparameterise(self.make_rng("sample"), cvae_mu, cvae_logvar) if train else cvae_mu
     batch, cue = self._split_cue(batch)
     h, pos = self.encoder(batch, style_z, deterministic)

@@ -100,16 +100,27 @@ def is_toy(cfg: TrainConfig) -> bool:
   return (cfg.data_taskset or cfg.taskset) in toy_skills.TASKSETS or cfg.taskset in toy_skills.TASK_IDS
 
 
+def is_libero(cfg: TrainConfig) -> bool:
+  """Whether `cfg` trains on LIBERO demonstrations (their layout: envs/libero/layout.py)."""
+  from envs.libero import suites as libero_suites
+  return libero_suites.is_libero((cfg.data_taskset or cfg.taskset).split(",")[0])
+
+
 def object_state_dim(cfg: TrainConfig) -> int:
-  """The width of `cfg`'s object_state: the toy's, or the tabletop tasks' (envs.OBJECT_STATE_DIM)."""
+  """The width of `cfg`'s object_state: the toy's, LIBERO's, or the tabletop tasks' (envs.OBJECT_STATE_DIM)."""
   from envs import toy_skills
-  return toy_skills.OBJECT_STATE_DIM if is_toy(cfg) else envs.OBJECT_STATE_DIM
+  from envs.libero import layout as libero_layout
+  if is_toy(cfg):
+    return toy_skills.OBJECT_STATE_DIM
+  return libero_layout.OBJECT_STATE_DIM if is_libero(cfg) else envs.OBJECT_STATE_DIM
 
 
 def example_batch(cfg: TrainConfig, batch_size: int) -> dict:
   """A batch of zeros shaped like `cfg`'s (the observation shapes follow its taskset)."""
   m = cfg.model
-  b = {"joint_pos": jnp.zeros((batch_size, m.joint_dim)),
+  proprio = ({"joint_pos": m.joint_dim} if m.proprio == ("joint_pos",)
+             else {k: model_config.PROPRIO_WIDTHS[k] for k in m.proprio})
+  b = {**{k: jnp.zeros((batch_size, w)) for k, w in proprio.items()},
        "object_state": jnp.zeros((batch_size, object_state_dim(cfg))),
        "actions": jnp.zeros((batch_size, m.chunk, m.action_dim)),
        "action_mask": jnp.ones((batch_size, m.chunk), bool),
