@@ -49,6 +49,9 @@ class Controller(NamedTuple):
   # (H, W) of the camera images the controller reads; None: it reads no camera (a state policy,
   # the scripted expert). Evaluation renders at this size whatever its caller asked.
   image_size: tuple[int, int] | None = None
+  # A policy that reads its task's instruction: text -> the word ids it reads (`state.obs["instruction"]`,
+  # filled by the episode engine of a benchmark with instructions: envs/libero/rollout.py). None: none.
+  instruction: Callable | None = None
 
 
 class Trajectory(NamedTuple):

@@ -29,7 +29,7 @@ NAN, INF = math.nan, math.inf
 REJECTED = [
     ("model", "policy", "diffusion"), ("model", "use_images", "yes"), ("model", "cameras", ()),
     ("model", "cameras", ("side", "side")), ("model", "cameras", ("top",)), ("model", "cameras", ["side"]),
-    ("model", "proprio", ()), ("model", "proprio", ("joint_pos", "joint_pos")), ("model", "proprio", ("eef_rot",)),
+    ("model", "instruction_vocab", -1), ("model", "instruction_words", 0), ("model", "proprio", ()), ("model", "proprio", ("joint_pos", "joint_pos")), ("model", "proprio", ("eef_rot",)),
     ("model", "image_size", (64,)), ("model", "image_size", (0, 64)), ("model", "joint_dim", 0),
     ("model", "action_dim", 0), ("model", "chunk", 0), ("model", "hidden", 0), ("model", "heads", 0),
     ("model", "ff", 0), ("model", "enc_layers", -1), ("model", "dec_layers", 0),

@@ -98,8 +98,9 @@ def test_libero_names_and_mixes_that_cannot_work_are_refused():
 
 @pytest.mark.slow
 def test_a_policy_trained_on_a_libero_dataset_runs_closed_loop_on_libero(tmp_path):
-  """The path a LIBERO experiment takes: demonstrations, ACT reading LIBERO's proprioception (16
-  numbers) and object state, its checkpoint as a controller, trials on the benchmark's init states."""
+  """The path a LIBERO experiment takes: demonstrations, ACT+SkillPlug reading LIBERO's proprioception
+  (16 numbers), object state and instruction, its checkpoint as a controller, trials on the
+  benchmark's init states."""
   from skillplug_jax import experiment
   from skillplug_jax.evaluate import libero as libero_eval
   from skillplug_jax.evaluate.policy_controller import load_controller
@@ -108,6 +109,7 @@ def test_a_policy_trained_on_a_libero_dataset_runs_closed_loop_on_libero(tmp_pat
   cfg = config.override(experiment.preset("quick", "skillplug"), [
       f"taskset={TASK}", "demos=2", f"data_dir={tmp_path / 'data'}", f"workdir={tmp_path / 'run'}",
       "model.proprio=joint_pos,gripper_qpos,eef_pos,eef_quat", "model.joint_dim=16", "model.hidden=32",
+      "model.instruction_vocab=128",
       "model.heads=2", "model.ff=64", "model.enc_layers=1", "model.dec_layers=1", "model.cvae_enc_layers=1",
       "model.chunk=10", "batch_size=4", "max_steps=4", "ckpt_every=4", "warmup_steps=1"])
   run = loop.train(cfg, progress=False)
@@ -116,6 +118,12 @@ def test_a_policy_trained_on_a_libero_dataset_runs_closed_loop_on_libero(tmp_pat
   assert set(controller.weights["stats"]) == {"action", "joint_pos", "gripper_qpos", "eef_pos", "eef_quat",
                                               "object_state"}
   assert controller.weights["params"]["encoder"]["joint_proj"]["kernel"].shape == (16, 32)
+  # it reads its instruction, in the vocabulary it trained with (kept in the run's statistics)
+  from skillplug_jax.data import language
+  from skillplug_jax.train import run_files
+  assert tuple(run_files.read_stats(run)[language.VOCABULARY_KEY]) == language.benchmark_vocabulary()
+  words = controller.instruction("pick up the alphabet soup and place it in the basket")
+  assert words.shape == (24,) and (words > language.UNK).sum() == 11
   row = libero_eval.evaluate_task(TASK, controller, trials=2)
   assert row["trials"] == 2 and len(row["trial_libero_success"]) == 2
   # four steps of training do not solve the task: both rules agree there is no success

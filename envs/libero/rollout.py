@@ -4,8 +4,9 @@ Trial i starts from the benchmark's init state i (`suites.init_states`), the arm
 `suites.SETTLE_STEPS` no-op steps while the objects settle (LIBERO's evaluation scripts do the
 same), then the policy acts for up to the suite's time limit. The policy is an
 `envs.rollout.Controller`, as on DISCOVERSE: per control step one jitted call for the whole batch
-reads `state.obs` (our LIBERO layout, `envs.libero.layout`: the fields a LIBERO dataset holds, and
-the two cameras at the controller's `image_size`) and returns LIBERO actions [B, 7], then one
+reads `state.obs` (our LIBERO layout, `envs.libero.layout`: the fields a LIBERO dataset holds, the
+two cameras at the controller's `image_size`, and the task's instruction as the word ids the
+controller asks for, `Controller.instruction`) and returns LIBERO actions [B, 7], then one
 batched step of the C engine. A policy trained on our LIBERO datasets runs here unchanged.
 
 Two outcomes per trial:
@@ -101,7 +102,9 @@ def _loop(batch: engine.LiberoBatch, task: suites.Task, controller: Controller, 
   obs, raw = _observe(batch, cameras, frames)
   video = [raw[f"{scenes.CAMERAS[0]}_image"][:frames]] if frames else []
   done = np.zeros(n, bool)
-  state = State({k: jnp.asarray(v) for k, v in obs.items()}, jnp.asarray(done))
+  words = ({} if controller.instruction is None
+           else {"instruction": np.tile(controller.instruction(task.language), (n, 1))})
+  state = State({k: jnp.asarray(v) for k, v in {**obs, **words}.items()}, jnp.asarray(done))
   act, w = _jitted(controller.act), controller.weights
   cstate = _jitted(controller.init)(state)
   first = np.full(n, -1)
@@ -125,7 +128,7 @@ def _loop(batch: engine.LiberoBatch, task: suites.Task, controller: Controller, 
     done |= newly | ((t >= limit - 1) & (held == 0))  # nothing left to decide
     if frames:
       video.append(raw[f"{scenes.CAMERAS[0]}_image"][:frames])
-    state = State({k: jnp.asarray(v) for k, v in obs.items()}, jnp.asarray(done))
+    state = State({k: jnp.asarray(v) for k, v in {**obs, **words}.items()}, jnp.asarray(done))
     t += 1
   clip = None
   if frames:

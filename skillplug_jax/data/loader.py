@@ -140,7 +140,8 @@ class ChunkLoader:
 
   def __init__(self, demos: Demonstrations, batch_size: int, chunk: int = 25, seed: int = 0,
                images: bool = False, sharding: NamedSharding | None = None,
-               normalize_object_state: bool = True, skill_labels: np.ndarray | None = None):
+               normalize_object_state: bool = True, skill_labels: np.ndarray | None = None,
+               instructions: np.ndarray | None = None):
     if images and demos.image_size is None:
       raise DatasetError("images requested but the demonstrations were loaded without images")
     if normalize_object_state and "object_state" not in demos.stats:
@@ -149,6 +150,9 @@ class ChunkLoader:
     if skill_labels is not None and len(skill_labels) != len(demos.steps["action"]):
       raise ValueError(f"{len(skill_labels)} skill labels for {len(demos.steps['action'])} steps")
     self.skill_labels = skill_labels  # [S] per step (data/segments.py), or None
+    if instructions is not None and len(instructions) != len(demos.tasks):
+      raise ValueError(f"{len(instructions)} instructions for {len(demos.tasks)} tasks")
+    self.instructions = instructions  # [tasks, words] word ids per task (data/language.py), or None
     self.demos, self.batch_size, self.chunk, self.seed, self.images = demos, batch_size, chunk, seed, images
     self.sharding = sharding or data_sharding()
     n_dev = self.sharding.mesh.size
@@ -212,6 +216,8 @@ class ChunkLoader:
         batch[f"{cam}_rgb"] = d.steps[f"{cam}_rgb"][row]
     if self.skill_labels is not None:
       batch["skill_label"] = self.skill_labels[row].astype(np.int32)
+    if self.instructions is not None:
+      batch["instruction"] = self.instructions[d.task_id[ep]].astype(np.int32)
     return batch
 
   def device_batch(self, step: int) -> dict:

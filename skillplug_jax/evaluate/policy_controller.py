@@ -17,6 +17,7 @@ import jax.numpy as jnp
 
 import envs
 from envs.rollout import Controller
+from skillplug_jax.data import language
 from skillplug_jax.model.config import ModelConfig
 from skillplug_jax.model.policy import Policy
 
@@ -65,8 +66,18 @@ def policy_controller(model: ModelConfig, params, stats: dict, *, query_every: i
   weights = {"params": params,
              "stats": {k: {s: jnp.asarray(stats[k][s], jnp.float32) for s in ("mean", "std")}
                        for k in inputs}}
+  instruction = None
+  if model.instruction_vocab:
+    if language.VOCABULARY_KEY not in stats:
+      raise ValueError("this model reads instructions, but the run's statistics hold no vocabulary")
+    vocab, width = tuple(stats[language.VOCABULARY_KEY]), model.instruction_words
+    instruction = functools.partial(_instruction_ids, vocab=vocab, width=width)
   return Controller(init, act, model.plug.num_skills if model.is_skillplug else 0, name, weights,
-                    tuple(model.image_size) if model.use_images else None)
+                    tuple(model.image_size) if model.use_images else None, instruction)
+
+
+def _instruction_ids(text: str, vocab: tuple, width: int):
+  return language.encode([text], vocab, width)[0]
 
 
 @functools.lru_cache(maxsize=None)
@@ -90,6 +101,8 @@ def _controller_fns(model: ModelConfig, query_every: int, temporal: bool, ensemb
     if model.use_images:
       for cam in model.cameras:
         x[f"{cam}_rgb"] = obs[f"{cam}_rgb"]
+    if model.instruction_vocab:
+      x["instruction"] = obs["instruction"]
     pred, r = policy.apply({"params": weights["params"]}, x, routing, method=Policy.predict)
     return pred * st["action"]["std"] + st["action"]["mean"], r
 

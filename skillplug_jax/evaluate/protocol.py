@@ -66,6 +66,9 @@ def evaluate_task(task: str, controller: Controller, trials: int, seed: int = EV
   """
   backend = envs.resolve_backend(backend)
   envs.appearance.check(appearance)
+  if getattr(controller, "instruction", None) is not None:
+    raise ValueError(f"this policy reads its task's instruction, and {task} has none (our DISCOVERSE tasks "
+                     "come without language; LIBERO's have it)")
   needs = getattr(controller, "image_size", None)
   if needs is not None:  # an image policy: drawn at its own size, even where a caller forgot to ask
     if render and tuple(image_size) != tuple(needs):

@@ -86,12 +86,13 @@ def object_slots(width: int) -> int:
 def num_tokens(config: ModelConfig, object_width: int = OBJECT_STATE_DIM) -> int:
   """N, the number of scene tokens the encoder emits (object_width: the object
   state's width, envs.names.OBJECT_STATE_DIM unless given)."""
+  first = 3 if config.instruction_vocab else 2  # style, joint (and the instruction)
   if not config.use_images:
     if config.object_tokens == "per_object":
-      return 2 + object_slots(object_width)
-    return 3
+      return first + object_slots(object_width)
+    return first + 1
   h, w = feature_map_size(config)
-  return 2 + len(config.cameras) * h * w
+  return first + len(config.cameras) * h * w
 
 
 def proprioception(obs: Mapping[str, jnp.ndarray], config: ModelConfig) -> jnp.ndarray:
@@ -115,8 +116,11 @@ class Encoder(nn.Module):
     batch = style_z.shape[0]
     style = nn.Dense(cfg.hidden, dtype=dt, name="style_proj")(style_z.astype(dt))
     joint = nn.Dense(cfg.hidden, dtype=dt, name="joint_proj")(proprioception(obs, cfg).astype(dt))
-    contents = [jnp.stack([style, joint], axis=1)]
-    pos = [self.param("token_pos", _embed_init(cfg), (2, cfg.hidden)).astype(dt)]
+    first = [style, joint]
+    if cfg.instruction_vocab:
+      first.append(self._instruction_token(obs["instruction"]))
+    contents = [jnp.stack(first, axis=1)]
+    pos = [self.param("token_pos", _embed_init(cfg), (len(first), cfg.hidden)).astype(dt)]
     if cfg.use_images:
       x, image_pos = self._image_tokens(obs, batch)
     elif cfg.object_tokens == "per_object":
@@ -134,6 +138,16 @@ class Encoder(nn.Module):
     x = TransformerEncoder(cfg.enc_layers, cfg.hidden, cfg.heads, cfg.ff, cfg.dropout, dt,
                            cfg.pre_norm, name="transformer")(x, deterministic, pos=pos)
     return x, pos
+
+  def _instruction_token(self, ids):
+    """[B, hidden]: the instruction's word embeddings (ids [B, words], PAD = 0 left out) averaged
+    and projected. An id past the table is an error of the caller (language.encode fits it)."""
+    cfg, dt = self.config, self.config.compute_dtype
+    emb = nn.Embed(cfg.instruction_vocab, cfg.hidden, dtype=dt, embedding_init=_embed_init(cfg),
+                   name="instruction_embed")(ids)
+    mask = (ids != 0).astype(dt)[..., None]
+    pooled = (emb * mask).sum(axis=1) / jnp.maximum(mask.sum(axis=1), 1.0)
+    return nn.Dense(cfg.hidden, dtype=dt, name="instruction_proj")(pooled)
 
   def _object_tokens(self, state):
     """One token per object slot [B, slots, hidden] (one MLP shared by the

@@ -64,7 +64,7 @@ _RULES = dict(
     cvae_zero_init=validation.flag(), normalize_object_state=validation.flag(), latent_dim=_count(1),
     cvae_enc_layers=_count(0), backbone_width=_count(1),
     backbone_stages=validation.each(_count(1), nonempty=True), object_tokens=_one_of(OBJECT_TOKENS),
-    adapter_width=_count(0), dtype=_one_of(DTYPES))
+    adapter_width=_count(0), dtype=_one_of(DTYPES), instruction_vocab=_count(0), instruction_words=_count(1))
 _RELATIONS = (
     validation.Relation("joint_dim", lambda c: c.proprio == ("joint_pos",)
                         or c.joint_dim == sum(PROPRIO_WIDTHS[k] for k in c.proprio),
@@ -138,6 +138,12 @@ class ModelConfig:
   # model/act.py's Adapter), with plug.site='decoder'; a few-shot fine-tune may add it to a source
   # that has none (`FINE_TUNE_ADDITIONS`). 32 at hidden 64: 4,320 parameters, the router's 4,420.
   adapter_width: int = 0
+  # The task's instruction as one more encoder token (ours; issue 42: LIBERO-Goal's tasks share a
+  # scene): 0 reads none; > 0 is the rows of a word-embedding table learned from scratch
+  # (data/language.py: the run's vocabulary must fit), the words mean-pooled and projected.
+  # ACT+SkillPlug's router pools the encoder's tokens, so it sees the instruction too.
+  instruction_vocab: int = 0
+  instruction_words: int = 24  # the longest instruction it reads, in words (LIBERO's: 19)
   plug: PlugConfig = PlugConfig()
   dtype: str = "float32"  # compute dtype ('bfloat16' on GPUs); params stay float32
 

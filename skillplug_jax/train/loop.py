@@ -35,7 +35,7 @@ import envs
 from skillplug_jax import dir_lock, losses
 from skillplug_jax.data import demos as demo_data
 from skillplug_jax.data import loader as data_loader
-from skillplug_jax.data import segments
+from skillplug_jax.data import language, segments
 from skillplug_jax.model import config as model_config
 from skillplug_jax.model import freeze
 from skillplug_jax.model.policy import Policy
@@ -128,6 +128,8 @@ def example_batch(cfg: TrainConfig, batch_size: int) -> dict:
   if m.use_images:
     for cam in m.cameras:
       b[f"{cam}_rgb"] = jnp.zeros((batch_size, *m.image_size, 3), jnp.uint8)
+  if m.instruction_vocab:
+    b["instruction"] = jnp.zeros((batch_size, m.instruction_words), jnp.int32)
   return b
 
 
@@ -220,6 +222,24 @@ def skill_labels(cfg: TrainConfig, data) -> np.ndarray | None:
                               data.start, data.length)
 
 
+def instruction_ids(cfg: TrainConfig, data: data_loader.Demonstrations):
+  """(data with its statistics holding the vocabulary, [tasks, words] word ids) for a model that
+  reads instructions; (data, None) for one that does not. The vocabulary is the source run's for a
+  fine-tune (its embeddings were learned for it), else the installed benchmark's (data/language.py)."""
+  m = cfg.model
+  if not m.instruction_vocab:
+    return data, None
+  if not data.language:
+    raise ValueError(f"model.instruction_vocab={m.instruction_vocab}: the model reads task instructions, and "
+                     f"the dataset {data.path} has none (our DISCOVERSE datasets come without language)")
+  vocab = tuple(data.stats.get(language.VOCABULARY_KEY) or language.benchmark_vocabulary())
+  if len(vocab) > m.instruction_vocab:
+    raise ValueError(f"model.instruction_vocab={m.instruction_vocab} rows cannot hold the vocabulary's "
+                     f"{len(vocab)} words (reserved ids included)")
+  stats = {**data.stats, language.VOCABULARY_KEY: list(vocab)}
+  return dataclasses.replace(data, stats=stats), language.encode(data.language, vocab, m.instruction_words)
+
+
 def writer_lock(run_dir: Path):
   """The run directory's lock (`dir_lock`): a second process training into it stops at once. Several
   hosts (jax.distributed) write one run together: the first process holds it for them."""
@@ -233,6 +253,7 @@ def _train(cfg: TrainConfig, progress: bool, stop_after: int | None, record: Run
   data = load_data(cfg, progress=progress)
   if cfg.init_from:  # the frozen encoder expects the inputs normalised as in its own training
     data = dataclasses.replace(data, stats=run_files.read_stats(cfg.init_from))
+  data, instructions = instruction_ids(cfg, data)
   n_dev = jax.device_count()
   mesh = Mesh(np.asarray(jax.devices()), ("data",))
   replicated = NamedSharding(mesh, PartitionSpec())
@@ -240,7 +261,7 @@ def _train(cfg: TrainConfig, progress: bool, stop_after: int | None, record: Run
                                    images=cfg.model.use_images,
                                    sharding=NamedSharding(mesh, PartitionSpec("data")),
                                    normalize_object_state=cfg.model.normalize_object_state,
-                                   skill_labels=skill_labels(cfg, data))
+                                   skill_labels=skill_labels(cfg, data), instructions=instructions)
   total = cfg.num_steps(data.num_episodes)
 
   key = jax.random.PRNGKey(cfg.seed)
