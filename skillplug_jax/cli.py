@@ -273,7 +273,8 @@ def build_parser() -> argparse.ArgumentParser:
   d.add_argument("--out", default="results/datasets", help="datasets directory")
   d.add_argument("--state-only", action="store_true", help="no camera images (state-based policies)")
   d.add_argument("--image-size", type=int, default=64, help="square camera images, pixels")
-  d.add_argument("--seed", type=int, default=0, help="reset seed of episode 0 (episode i uses fold_in(seed, i))")
+  d.add_argument("--seed", type=int, default=0, help="reset seed of episode 0 (episode i uses fold_in(seed, i); "
+                 "LIBERO: the seed of its placement samplers' draws)")
   d.add_argument("--batch", type=int, default=64, help="environments simulated at once")
   _backend_flag(d)
   d.set_defaults(fn=cmd_demos)

@@ -32,7 +32,8 @@ from skillplug_jax.data.recording import Episode, record_expert
 
 @dataclasses.dataclass(frozen=True)
 class DemoConfig:
-  """What to generate. Episode i of a task starts from `rollout.reset_keys(seed, ...)[i]`."""
+  """What to generate. Episode i of a task starts from `rollout.reset_keys(seed, ...)[i]`; of a
+  LIBERO task, from drawn start i of `seed` (`envs.libero.starts`)."""
   taskset: str = "discoverse7"  # taskset name or comma-separated task names
   demos: int = 300  # successful episodes kept per task
   images: bool = True
