@@ -111,7 +111,7 @@ def test_two_devices_match_one_and_videos_follow_episodes(tmp_path):
 def test_videos_are_written_as_gifs(tmp_path):
   rng = np.random.default_rng(0)
   videos = [rng.integers(0, 255, (n, 16, 16, 3), dtype=np.uint8) for n in (5, 9)]
-  protocol._write_videos(videos, tmp_path / "v", "jujube_pick")
+  protocol.write_videos(videos, tmp_path / "v", "jujube_pick")
   assert sorted(p.name for p in (tmp_path / "v").iterdir()) == ["jujube_pick_trial00.gif",
                                                                  "jujube_pick_trial01.gif"]
   back = iio.imread(tmp_path / "v" / "jujube_pick_trial01.gif", index=None)
@@ -126,7 +126,7 @@ def test_probe_sheet_stacks_each_modes_gif_in_order(tmp_path):
   for mode, shade in shades.items():
     clip = np.full((4, 8, 8, 3), shade, np.uint8)
     clip[:, 0, 0] = np.arange(4)[:, None] * 60  # the frame's index, in one corner
-    protocol._write_videos([clip], tmp_path / mode, "drawer_open")
+    protocol.write_videos([clip], tmp_path / mode, "drawer_open")
   sheet, modes = probe_sheet.probe_sheet(tmp_path, "drawer_open", frames=4)
   assert modes == ["router", "uniform", "skill0", "skill2", "skill10"]
   assert sheet.shape == (5 * 8, 4 * 8, 3)

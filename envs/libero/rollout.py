@@ -19,7 +19,6 @@ Two outcomes per trial:
 
 from __future__ import annotations
 
-import functools
 from typing import NamedTuple
 
 import jax
@@ -28,9 +27,8 @@ import numpy as np
 
 from envs.libero import engine, layout, suites
 from envs.libero import scene as scenes
-from envs.rollout import Controller
-
-HOLD_STEPS = 10  # 0.5 s at 20 Hz, as the experts' rule (expert.HOLD_STEPS)
+from envs.libero.expert import HOLD_STEPS  # 0.5 s at 20 Hz: the experts' rule, and a policy's
+from envs.rollout import Controller, _jitted
 RELEASED_GAP = 0.075  # m between the Panda's fingers: open (0.078-0.080 when nothing is between them)
 REST = np.array([0, 0, 0, 0, 0, 0, -1.0])  # LIBERO's no-op: hold the pose, gripper open
 
@@ -48,11 +46,6 @@ class Trials(NamedTuple):
   declared_step: np.ndarray  # [B] the step our success was declared, -1 if none
   steps_run: int
   frames: list | None = None  # agentview [T_i + 1, H, W, 3] uint8 of the first trials: start to end
-
-
-@functools.lru_cache(maxsize=None)
-def _jitted(fn):
-  return jax.jit(fn)
 
 
 def run_trials(name: str, controller: Controller, trials: int = suites.INIT_STATES_PER_TASK, first: int = 0,

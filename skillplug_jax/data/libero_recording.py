@@ -15,9 +15,8 @@ import numpy as np
 
 from envs.libero import engine, expert, layout, starts, suites
 from envs.libero import scene as scenes
+from envs.libero.rollout import REST
 from skillplug_jax.data.recording import Episode
-
-REST = np.array([0, 0, 0, 0, 0, 0, -1.0])  # LIBERO's no-op: hold the pose, gripper open
 
 
 def record_expert(name: str, first: int, num: int, seed: int = 0, images: bool = True, image_size: int = 64,

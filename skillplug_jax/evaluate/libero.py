@@ -14,7 +14,6 @@ training seed; the seeds' results are aggregated as mean +- SE.
 
 from __future__ import annotations
 
-import os
 import sys
 from pathlib import Path
 from typing import Mapping, Sequence
@@ -24,7 +23,7 @@ from tqdm import tqdm
 
 from envs.libero import rollout, suites
 from envs.rollout import Controller
-from skillplug_jax.evaluate import tables
+from skillplug_jax.evaluate import protocol, tables
 
 MEASURES = ("libero_success", "success")  # LIBERO's rule, ours
 
@@ -38,23 +37,13 @@ def evaluate_task(name: str, controller: Controller, trials: int = suites.INIT_S
     raise ValueError("videos need a video_dir")
   r = rollout.run_trials(name, controller, trials, frames=videos)
   if videos:
-    _write_videos(r.frames, Path(video_dir), name.replace(":", "_"))
+    protocol.write_videos(r.frames, Path(video_dir), name.replace(":", "_"))
   task = suites.parse(name)
   reached = r.first_success_step[r.libero_success]
   return dict(task=name, abbr=suites.abbr(name), name=task.name, language=task.language, trials=trials,
               success_rate=float(r.success.mean()), libero_success_rate=float(r.libero_success.mean()),
               trial_success=r.success.tolist(), trial_libero_success=r.libero_success.tolist(),
               median_steps=float(np.median(reached)) if reached.size else None, time_limit=task.time_limit)
-
-
-def _write_videos(frames: list, out: Path, stem: str, fps: int = 20) -> None:
-  import imageio.v3 as iio
-  out.mkdir(parents=True, exist_ok=True)
-  for i, video in enumerate(frames):
-    path = out / f"{stem}_trial{i:02d}.gif"
-    tmp = path.with_suffix(".tmp.gif")
-    iio.imwrite(tmp, video, duration=1000 / fps, loop=0)
-    os.replace(tmp, path)
 
 
 def evaluate(policies: Mapping[str, Sequence[Controller]], tasks: Sequence[str],

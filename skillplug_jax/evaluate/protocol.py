@@ -93,7 +93,7 @@ def evaluate_task(task: str, controller: Controller, trials: int, seed: int = EV
       video_env = benv if render else envs.make(task, num_envs=per_device, render=True, image_size=VIDEO_SIZE,
                                                 devices=devices, backend=backend, appearance=appearance)
       parts.append(run_episodes(video_env, controller, k, devices, frames=frames))
-      _write_videos(parts[-1].frames, Path(video_dir or "."), task)
+      write_videos(parts[-1].frames, Path(video_dir or "."), task)
     else:
       parts.append(run_episodes(benv, controller, k, devices))
     if on_batch is not None:
@@ -169,7 +169,7 @@ def read_routing(path: str | Path) -> dict:
   return out
 
 
-def _write_videos(frames: list, out: Path, task: str, fps: int = 20) -> None:
+def write_videos(frames: list, out: Path, task: str, fps: int = 20) -> None:
   import imageio.v3 as iio
   out.mkdir(parents=True, exist_ok=True)
   for i, video in enumerate(frames):
