@@ -33,6 +33,13 @@ RELEASE_ABOVE = 0.03  # m between the object's bottom and the target's top (On) 
 # palm reaches 10.5 cm either side along the fingers, 3.2 cm across.
 PALM_ABOVE, PALM_HALF_LENGTH, PALM_HALF_WIDTH = 0.026, 0.105, 0.032
 MAX_GRASP_WIDTH = 0.07  # m: an object side the open fingers (8 cm apart) close across
+# An object wider than that both ways (a bowl, a mug) is grasped at its rim: the fingers close
+# across its wall, radially, at the top of one of the colliding geoms that reach its top.
+RIM_BAND = 0.005  # m: a geom whose top is this close to the object's top is part of the rim
+RIM_DEPTH = 0.013  # m the grip site goes below the rim's top: the pads (site -4 to +12 mm) cover
+#                    its top centimetre and the palm (2.6 cm above the site) stays clear of it
+FINGER_REACH, FINGER_BELOW = 0.0435, 0.012  # m: the open fingers' pads from the site along x,
+#                                             and the fingers' lowest point below the site
 CLOSE_STEPS = 10
 RELEASE_STEPS = 8
 PHASE_LIMIT = 60  # control steps before a phase gives up waiting and moves on
@@ -48,6 +55,7 @@ class Task:
   target_body: int = -1  # On(object): the target's body ...
   target_box: np.ndarray | None = None  # ... and its box
   site: int = -1  # In/On(region): the region's site
+  rim: np.ndarray | None = None  # [k, 3] rim points (body frame) of an object grasped at its rim
 
 
 def _box(model: mujoco.MjModel, body: int) -> np.ndarray:
@@ -80,6 +88,23 @@ def _box(model: mujoco.MjModel, body: int) -> np.ndarray:
   return np.stack([pts.min(0), pts.max(0)])
 
 
+def _rim(model: mujoco.MjModel, body: int, box: np.ndarray) -> np.ndarray | None:
+  """[k, 3] body-frame centres of the colliding boxes that reach the top of an object too wide for the
+  fingers both ways (its rim: a bowl's or a mug's wall), or None for an object grasped across."""
+  if (box[1, :2] - box[0, :2]).min() <= MAX_GRASP_WIDTH:
+    return None
+  points = []
+  for g in range(model.ngeom):
+    if model.geom_bodyid[g] != body or not (model.geom_contype[g] or model.geom_conaffinity[g]):
+      continue
+    rot = np.zeros(9)
+    mujoco.mju_quat2Mat(rot, model.geom_quat[g])
+    top = model.geom_pos[g, 2] + np.abs(rot.reshape(3, 3)[2] * model.geom_size[g]).sum()
+    if model.geom_type[g] == mujoco.mjtGeom.mjGEOM_BOX and top > box[1, 2] - RIM_BAND:
+      points.append(model.geom_pos[g].copy())
+  return np.array(points) if len(points) >= 3 else None
+
+
 def _world_box(box: np.ndarray, pos: np.ndarray, mat: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
   """(lower, upper) [B, 3] world bounds of a body box at poses pos [B, 3], mat [B, 3, 3]."""
   signs = np.array(np.meshgrid(*[[0, 1]] * 3)).reshape(3, -1).T
@@ -99,7 +124,8 @@ class Expert:
       if atom.test not in ("in_region", "on_region", "on_object"):
         raise NotImplementedError(f"{meta['task']}: no scripted expert for {atom.predicate}{atom.args} yet "
                                   "(envs/libero/expert.py scripts In and On of a movable object)")
-      kw = dict(atom=atom, body=atom.body, box=_box(model, atom.body))
+      box = _box(model, atom.body)
+      kw = dict(atom=atom, body=atom.body, box=box, rim=_rim(model, atom.body, box))
       if atom.test == "on_object":
         kw.update(target_body=atom.target_body, target_box=_box(model, atom.target_body))
       else:
@@ -152,7 +178,15 @@ class Expert:
     fingers = a["xpos"][ids, self._fingers[0]] - a["xpos"][ids, self._fingers[1]]
     f = fingers[:, :2] / np.maximum(np.linalg.norm(fingers[:, :2], axis=-1, keepdims=True), 1e-9)
     candidates = []  # (finger axis [n, 2], offset [n, 2], penalty)
-    for across in (0, 1):
+    if t.rim is not None:  # across the wall at one of its rim points, the fingers radial
+      middle = t.rim.mean(0)
+      for point in t.rim:
+        axis = np.einsum("bij,j->bi", mat, point - middle)[:, :2]
+        axis = axis / np.maximum(np.linalg.norm(axis, axis=-1, keepdims=True), 1e-9)
+        world = a["xpos"][ids, t.body] + np.einsum("bij,j->bi", mat, point)
+        turn = np.abs(np.arcsin(np.clip(f[:, 0] * axis[:, 1] - f[:, 1] * axis[:, 0], -1, 1)))
+        candidates.append((axis, world[:, :2] - centre[:, :2], 0.002 * turn / (np.pi / 2)))
+    for across in (0, 1) if t.rim is None else ():
       if extent[across] > MAX_GRASP_WIDTH and not (across == int(np.argmin(extent[:2]))):
         continue
       along = 1 - across
@@ -167,11 +201,12 @@ class Expert:
     best_axis, best_offset = np.zeros((len(ids), 2)), np.zeros((len(ids), 2))
     u = np.linspace(-PALM_HALF_LENGTH, PALM_HALF_LENGTH, 9)
     v = np.linspace(-PALM_HALF_WIDTH, PALM_HALF_WIDTH, 3)
-    palm_z = grasp_z + PALM_ABOVE
+    palm_z, finger_z = grasp_z + PALM_ABOVE, grasp_z - FINGER_BELOW
     for axis, offset, penalty in candidates:
       normal = np.stack([-axis[:, 1], axis[:, 0]], -1)
       points = (centre[:, None, None, :2] + offset[:, None, None] + u[None, :, None, None] * axis[:, None, None]
                 + v[None, None, :, None] * normal[:, None, None]).reshape(len(ids), -1, 2)
+      tips = centre[:, None, :2] + offset[:, None] + np.array([-1, 1])[None, :, None] * FINGER_REACH * axis[:, None]
       clearance = np.full(len(ids), 1.0)
       for body, box in self._obstacles.items():
         if body == t.body:
@@ -180,6 +215,9 @@ class Expert:
         gap = np.maximum(np.maximum(lo[:, None, :2] - points, points - hi[:, None, :2]), 0.0)
         dist = np.linalg.norm(gap, axis=-1).min(axis=1)
         clearance = np.where(hi[:, 2] > palm_z, np.minimum(clearance, dist), clearance)
+        gap = np.maximum(np.maximum(lo[:, None, :2] - tips, tips - hi[:, None, :2]), 0.0)
+        dist = np.linalg.norm(gap, axis=-1).min(axis=1)  # the fingers reach lower than the palm
+        clearance = np.where(hi[:, 2] > finger_z, np.minimum(clearance, dist), clearance)
       score = np.minimum(clearance, 0.03) - penalty  # beyond 3 cm, room is room
       better = score > best_score
       best_score = np.where(better, score, best_score)
@@ -208,7 +246,7 @@ class Expert:
       place_xy, place_top = self._target(t, ids)
       phase = self.phase[ids]
       height = hi[:, 2] - lo[:, 2]
-      grasp_z = hi[:, 2] - np.minimum(GRASP_DEPTH, height / 2)
+      grasp_z = hi[:, 2] - (np.minimum(GRASP_DEPTH, height / 2) if t.rim is None else RIM_DEPTH)
       start = self.fresh[ids] & (phase == ABOVE)
       if start.any():
         sel = ids[start]
