@@ -36,8 +36,12 @@ MAX_GRASP_WIDTH = 0.07  # m: an object side the open fingers (8 cm apart) close 
 # An object wider than that both ways (a bowl, a mug) is grasped at its rim: the fingers close
 # across its wall, radially, at the top of one of the colliding geoms that reach its top.
 RIM_BAND = 0.005  # m: a geom whose top is this close to the object's top is part of the rim
-RIM_DEPTH = 0.013  # m the grip site goes below the rim's top: the pads (site -4 to +12 mm) cover
+RIM_DEPTH = 0.02  # m the grip site goes below the rim's top: the pads (site -4 to +12 mm) cover
 #                    its top centimetre and the palm (2.6 cm above the site) stays clear of it
+REACH_COST = 0.1  # score per metre of the rim point from the shoulder: the near side of a far
+#                   bowl keeps the elbow off its limit (the arm is straight 0.8 m out)
+ABOVE_Z_TOLERANCE = 0.03  # m: above the grasp point is reached at this height error (at full
+#                           reach the arm cannot lift the hand to the exact clearance height)
 FINGER_REACH, FINGER_BELOW = 0.0435, 0.012  # m: the open fingers' pads from the site along x,
 #                                             and the fingers' lowest point below the site
 CLOSE_STEPS = 10
@@ -88,6 +92,30 @@ def _box(model: mujoco.MjModel, body: int) -> np.ndarray:
   return np.stack([pts.min(0), pts.max(0)])
 
 
+def _geoms(model: mujoco.MjModel, bodies) -> dict[str, np.ndarray]:
+  """The colliding geoms of the given bodies' subtrees as oriented boxes (their bounding boxes in
+  their own frames): the owner (which of `bodies`), the geom's body, centre and rotation in that
+  body's frame, half sizes. A cabinet's drawer or a basket is its walls, not its whole box."""
+  owner, body, centre, rot, half = [], [], [], [], []
+  for g in range(model.ngeom):
+    if not (model.geom_contype[g] or model.geom_conaffinity[g]):
+      continue
+    b = int(model.geom_bodyid[g])
+    while b not in bodies and b != 0:
+      b = int(model.body_parentid[b])
+    if b == 0:
+      continue
+    r = np.zeros(9)
+    mujoco.mju_quat2Mat(r, model.geom_quat[g])
+    owner.append(b)
+    body.append(int(model.geom_bodyid[g]))
+    centre.append(model.geom_pos[g] + r.reshape(3, 3) @ model.geom_aabb[g, :3])
+    rot.append(r.reshape(3, 3))
+    half.append(model.geom_aabb[g, 3:])
+  return dict(owner=np.array(owner), body=np.array(body), centre=np.array(centre), rot=np.array(rot),
+              half=np.array(half))
+
+
 def _rim(model: mujoco.MjModel, body: int, box: np.ndarray) -> np.ndarray | None:
   """[k, 3] body-frame centres of the colliding boxes that reach the top of an object too wide for the
   fingers both ways (its rim: a bowl's or a mug's wall), or None for an object grasped across."""
@@ -133,8 +161,9 @@ class Expert:
       self.tasks.append(Task(**kw))
     fingers = [int(model.jnt_bodyid[model.joint(j["name"]).id]) for j in meta["robot"]["gripper_joints"]]
     self._fingers = fingers
+    self._shoulder = int(model.jnt_bodyid[model.joint(meta["robot"]["arm_joints"][0]["name"]).id])
     bodies = {model.body(o["body"]).id for o in meta["objects"].values()}
-    self._obstacles = {b: _box(model, b) for b in sorted(bodies)}  # what the palm must clear
+    self._obstacles = _geoms(model, bodies)  # what the hand must clear
     n = batch.num_envs
     self.task = np.zeros(n, np.int64)  # which atom each env works on
     self.phase = np.zeros(n, np.int64)
@@ -185,7 +214,8 @@ class Expert:
         axis = axis / np.maximum(np.linalg.norm(axis, axis=-1, keepdims=True), 1e-9)
         world = a["xpos"][ids, t.body] + np.einsum("bij,j->bi", mat, point)
         turn = np.abs(np.arcsin(np.clip(f[:, 0] * axis[:, 1] - f[:, 1] * axis[:, 0], -1, 1)))
-        candidates.append((axis, world[:, :2] - centre[:, :2], 0.002 * turn / (np.pi / 2)))
+        reach = np.linalg.norm(world[:, :2] - a["xpos"][ids, self._shoulder, :2], axis=-1)
+        candidates.append((axis, world[:, :2] - centre[:, :2], 0.002 * turn / (np.pi / 2) + REACH_COST * reach))
     for across in (0, 1) if t.rim is None else ():
       if extent[across] > MAX_GRASP_WIDTH and not (across == int(np.argmin(extent[:2]))):
         continue
@@ -202,22 +232,25 @@ class Expert:
     u = np.linspace(-PALM_HALF_LENGTH, PALM_HALF_LENGTH, 9)
     v = np.linspace(-PALM_HALF_WIDTH, PALM_HALF_WIDTH, 3)
     palm_z, finger_z = grasp_z + PALM_ABOVE, grasp_z - FINGER_BELOW
+    o = self._obstacles
+    keep = o["owner"] != t.body
+    bmat = a["xmat"][ids[:, None], o["body"][keep]].reshape(len(ids), -1, 3, 3)
+    gpos = a["xpos"][ids[:, None], o["body"][keep]] + np.einsum("bgij,gj->bgi", bmat, o["centre"][keep])
+    gmat = np.einsum("bgij,gjk->bgik", bmat, o["rot"][keep])
+    half = o["half"][keep]
+    rise = np.array([0.0, 0.04, 0.08])  # the hand's column above its lowest points
     for axis, offset, penalty in candidates:
       normal = np.stack([-axis[:, 1], axis[:, 0]], -1)
-      points = (centre[:, None, None, :2] + offset[:, None, None] + u[None, :, None, None] * axis[:, None, None]
-                + v[None, None, :, None] * normal[:, None, None]).reshape(len(ids), -1, 2)
-      tips = centre[:, None, :2] + offset[:, None] + np.array([-1, 1])[None, :, None] * FINGER_REACH * axis[:, None]
-      clearance = np.full(len(ids), 1.0)
-      for body, box in self._obstacles.items():
-        if body == t.body:
-          continue
-        lo, hi = _world_box(box, a["xpos"][ids, body], a["xmat"][ids, body].reshape(-1, 3, 3))
-        gap = np.maximum(np.maximum(lo[:, None, :2] - points, points - hi[:, None, :2]), 0.0)
-        dist = np.linalg.norm(gap, axis=-1).min(axis=1)
-        clearance = np.where(hi[:, 2] > palm_z, np.minimum(clearance, dist), clearance)
-        gap = np.maximum(np.maximum(lo[:, None, :2] - tips, tips - hi[:, None, :2]), 0.0)
-        dist = np.linalg.norm(gap, axis=-1).min(axis=1)  # the fingers reach lower than the palm
-        clearance = np.where(hi[:, 2] > finger_z, np.minimum(clearance, dist), clearance)
+      grasp = centre[:, :2] + offset
+      palm = (grasp[:, None, None] + u[None, :, None, None] * axis[:, None, None]
+              + v[None, None, :, None] * normal[:, None, None]).reshape(len(ids), -1, 2)
+      tips = grasp[:, None] + np.array([-1, 1])[None, :, None] * FINGER_REACH * axis[:, None]
+      points = np.concatenate([
+          np.concatenate([np.repeat(palm, 3, 1), (palm_z[:, None] + np.tile(rise, palm.shape[1]))[..., None]], -1),
+          np.concatenate([np.repeat(tips, 3, 1), (finger_z[:, None] + np.tile(rise, 2))[..., None]], -1)], 1)
+      local = np.einsum("bgji,bpgj->bpgi", gmat, points[:, :, None] - gpos[:, None])  # [n, points, geoms, 3]
+      gap = np.maximum(np.abs(local) - half, 0.0)
+      clearance = np.minimum(np.linalg.norm(gap, axis=-1).min(axis=(1, 2)), 1.0)
       score = np.minimum(clearance, 0.03) - penalty  # beyond 3 cm, room is room
       better = score > best_score
       best_score = np.where(better, score, best_score)
@@ -285,7 +318,8 @@ class Expert:
       err = np.linalg.norm(tgt - hand[ids], axis=-1)
       count = self.count[ids] + 1
       done = np.zeros(ids.size, bool)
-      done |= (phase == ABOVE) & (err < 0.01)
+      flat = np.linalg.norm(tgt[:, :2] - hand[ids, :2], axis=-1)
+      done |= (phase == ABOVE) & (flat < 0.01) & (np.abs(tgt[:, 2] - hand[ids, 2]) < ABOVE_Z_TOLERANCE)
       done |= (phase == DESCEND) & (err < 0.006)
       done |= (phase == CLOSE) & (count >= CLOSE_STEPS)
       done |= (phase == LIFT) & (np.abs(tgt[:, 2] - hand[ids, 2]) < 0.02)
