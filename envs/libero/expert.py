@@ -40,14 +40,21 @@ RIM_DEPTH = 0.02  # m the grip site goes below the rim's top: the pads (site -4 
 #                    its top centimetre and the palm (2.6 cm above the site) stays clear of it
 REACH_COST = 0.1  # score per metre of the rim point from the shoulder: the near side of a far
 #                   bowl keeps the elbow off its limit (the arm is straight 0.8 m out)
+RIM_CARRY_STEP = 0.025  # m: the carry's target at most this far ahead of a rim-held object's hand
 ABOVE_Z_TOLERANCE = 0.03  # m: above the grasp point is reached at this height error (at full
 #                           reach the arm cannot lift the hand to the exact clearance height)
 FINGER_REACH, FINGER_BELOW = 0.0435, 0.012  # m: the open fingers' pads from the site along x,
 #                                             and the fingers' lowest point below the site
-CLOSE_STEPS = 10
+FINGER_HALF_WIDTH = 0.01  # m: the fingers across their closing axis
+ROOM = 0.03  # m: room around the hand beyond this is as good as more
+PALM_WEIGHT = 0.5  # the palm's room counts half the fingers' (they go lower, beside the object)
+CLOSE_STEPS = 10  # the fingers close for at least this many steps ...
+CLOSE_STEPS_MAX = 16  # ... and on until they stop (a bowl's 3 mm wall: the fingers travel 7 cm)
+CLOSED_SPEED = 0.001  # m per step: the fingers have stopped on the object
 RELEASE_STEPS = 8
 PHASE_LIMIT = 60  # control steps before a phase gives up waiting and moves on
 HOLD_STEPS = 10  # control steps (0.5 s) the goal must keep holding after the expert is done
+import os; DEBUG = os.environ.get("EXPERT_DEBUG")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -173,6 +180,8 @@ class Expert:
     self.grasp_xy = np.zeros((n, 2))  # grasp point - object centre, chosen when the approach starts
     self.carry_z = np.zeros(n)  # the hand's carrying height, fixed when the lift starts
     self.fresh = np.ones(n, bool)
+    self._finger_q = [j["qposadr"] for j in meta["robot"]["gripper_joints"]]
+    self.gap = np.zeros(n)  # the fingers' opening at the previous step
 
   # ---------------------------------------------------------------- what the expert reads
 
@@ -244,14 +253,17 @@ class Expert:
       grasp = centre[:, :2] + offset
       palm = (grasp[:, None, None] + u[None, :, None, None] * axis[:, None, None]
               + v[None, None, :, None] * normal[:, None, None]).reshape(len(ids), -1, 2)
-      tips = grasp[:, None] + np.array([-1, 1])[None, :, None] * FINGER_REACH * axis[:, None]
+      tips = (grasp[:, None, None] + np.array([-1, 1])[None, :, None, None] * FINGER_REACH * axis[:, None, None]
+              + np.array([-1, 0, 1])[None, None, :, None] * FINGER_HALF_WIDTH * normal[:, None, None]).reshape(len(ids), -1, 2)
       points = np.concatenate([
           np.concatenate([np.repeat(palm, 3, 1), (palm_z[:, None] + np.tile(rise, palm.shape[1]))[..., None]], -1),
-          np.concatenate([np.repeat(tips, 3, 1), (finger_z[:, None] + np.tile(rise, 2))[..., None]], -1)], 1)
+          np.concatenate([np.repeat(tips, 3, 1), (finger_z[:, None] + np.tile(rise, tips.shape[1]))[..., None]], -1)], 1)
       local = np.einsum("bgji,bpgj->bpgi", gmat, points[:, :, None] - gpos[:, None])  # [n, points, geoms, 3]
-      gap = np.maximum(np.abs(local) - half, 0.0)
-      clearance = np.minimum(np.linalg.norm(gap, axis=-1).min(axis=(1, 2)), 1.0)
-      score = np.minimum(clearance, 0.03) - penalty  # beyond 3 cm, room is room
+      dist = np.linalg.norm(np.maximum(np.abs(local) - half, 0.0), axis=-1).min(axis=2)
+      room_palm = np.minimum(dist[:, :3 * palm.shape[1]].min(1), ROOM)  # beyond 3 cm, room is room
+      room_tips = np.minimum(dist[:, 3 * palm.shape[1]:].min(1), ROOM)
+      score = room_tips + PALM_WEIGHT * room_palm - penalty
+      if DEBUG: print("cand", (offset[0]).round(3), "tips", room_tips[0].round(4), "palm", room_palm[0].round(4), "pen", np.round(penalty if np.isscalar(penalty) else penalty[0], 4))
       better = score > best_score
       best_score = np.where(better, score, best_score)
       best_axis[better], best_offset[better] = axis[better], offset[better]
@@ -268,6 +280,9 @@ class Expert:
     """LIBERO actions [B, 7] for the batch's current state; advances the state machines."""
     n = self.batch.num_envs
     hand, hand_mat = self._hand()
+    q = self.batch.data["qpos"]
+    gap = np.abs(q[:, self._finger_q[0]] - q[:, self._finger_q[1]])
+    closing, self.gap = np.abs(gap - self.gap), gap
     target = hand.copy()
     grip = np.full(n, -1.0)
     for k, t in enumerate(self.tasks):
@@ -301,6 +316,10 @@ class Expert:
       sel = phase == CARRY
       g[sel] = 1.0
       tgt[sel] = np.c_[place_xy[sel] - self.offset[ids[sel], :2], carry_z[sel]]
+      if t.rim is not None:  # held by a wall 3 mm thick: no jerks
+        step = tgt[sel] - hand[ids[sel]]
+        tgt[sel] = hand[ids[sel]] + step * np.minimum(1.0, RIM_CARRY_STEP / np.maximum(
+            np.linalg.norm(step, axis=-1, keepdims=True), 1e-9))
       sel = phase == LOWER
       g[sel] = 1.0
       below = hand[ids[sel], 2] - lo[sel, 2]  # the hand's height over the object's bottom
@@ -308,7 +327,7 @@ class Expert:
         z = place_top[sel] + (hand[ids[sel], 2] - centre[sel, 2])
       else:
         z = place_top[sel] + RELEASE_ABOVE + below
-      tgt[sel] = np.c_[place_xy[sel] - self.offset[ids[sel], :2], z]
+      tgt[sel] = np.c_[place_xy[sel] - (centre[sel, :2] - hand[ids[sel], :2]), z]  # where it hangs now
       sel = phase == RELEASE
       tgt[sel] = hand[ids[sel]]
       sel = (phase == RETREAT) | (phase == DONE)
@@ -321,7 +340,7 @@ class Expert:
       flat = np.linalg.norm(tgt[:, :2] - hand[ids, :2], axis=-1)
       done |= (phase == ABOVE) & (flat < 0.01) & (np.abs(tgt[:, 2] - hand[ids, 2]) < ABOVE_Z_TOLERANCE)
       done |= (phase == DESCEND) & (err < 0.006)
-      done |= (phase == CLOSE) & (count >= CLOSE_STEPS)
+      done |= (phase == CLOSE) & (count >= CLOSE_STEPS) & ((closing[ids] < CLOSED_SPEED) | (count >= CLOSE_STEPS_MAX))
       done |= (phase == LIFT) & (np.abs(tgt[:, 2] - hand[ids, 2]) < 0.02)
       done |= (phase == CARRY) & (np.linalg.norm(tgt[:, :2] - hand[ids, :2], axis=-1) < 0.01)
       done |= (phase == LOWER) & (err < 0.008)
