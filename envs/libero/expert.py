@@ -247,6 +247,8 @@ class Expert:
     gpos = a["xpos"][ids[:, None], o["body"][keep]] + np.einsum("bgij,gj->bgi", bmat, o["centre"][keep])
     gmat = np.einsum("bgij,gjk->bgik", bmat, o["rot"][keep])
     half = o["half"][keep]
+    top = gpos[..., 2] + np.einsum("bgj,gj->bg", np.abs(gmat[:, :, 2]), half)
+    below_palm, below_tips = top < palm_z[:, None], top < finger_z[:, None]
     rise = np.array([0.0, 0.04, 0.08])  # the hand's column above its lowest points
     for axis, offset, penalty in candidates:
       normal = np.stack([-axis[:, 1], axis[:, 0]], -1)
@@ -259,9 +261,10 @@ class Expert:
           np.concatenate([np.repeat(palm, 3, 1), (palm_z[:, None] + np.tile(rise, palm.shape[1]))[..., None]], -1),
           np.concatenate([np.repeat(tips, 3, 1), (finger_z[:, None] + np.tile(rise, tips.shape[1]))[..., None]], -1)], 1)
       local = np.einsum("bgji,bpgj->bpgi", gmat, points[:, :, None] - gpos[:, None])  # [n, points, geoms, 3]
-      dist = np.linalg.norm(np.maximum(np.abs(local) - half, 0.0), axis=-1).min(axis=2)
-      room_palm = np.minimum(dist[:, :3 * palm.shape[1]].min(1), ROOM)  # beyond 3 cm, room is room
-      room_tips = np.minimum(dist[:, 3 * palm.shape[1]:].min(1), ROOM)
+      dist = np.linalg.norm(np.maximum(np.abs(local) - half, 0.0), axis=-1)  # [n, points, geoms]
+      k = 3 * palm.shape[1]  # what stands lower than the palm (the fingers) is not in its way
+      room_palm = np.minimum(np.where(below_palm[:, None], 1.0, dist[:, :k]).min(axis=(1, 2)), ROOM)
+      room_tips = np.minimum(np.where(below_tips[:, None], 1.0, dist[:, k:]).min(axis=(1, 2)), ROOM)
       score = room_tips + PALM_WEIGHT * room_palm - penalty
       if DEBUG: print("cand", (offset[0]).round(3), "tips", room_tips[0].round(4), "palm", room_palm[0].round(4), "pen", np.round(penalty if np.isscalar(penalty) else penalty[0], 4))
       better = score > best_score
