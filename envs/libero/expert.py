@@ -29,9 +29,10 @@ GRASP_DEPTH = 0.03  # m below the object's top, at most half its height
 LIFT_CLEARANCE = 0.12  # m above the higher of the object's and the target's tops while carrying
 RELEASE_ABOVE = 0.03  # m between the object's bottom and the target's top (On) when opened
 # The Panda hand in the grip site's frame (robosuite's model, measured from its collision geoms):
-# the fingers close along the site's x axis, the palm's bottom is 2.6 cm above the site and the
+# the fingers close along the site's x axis, the palm's bottom is 3.1 cm above the site (its mesh's
+# lowest vertex) and the
 # palm reaches 10.5 cm either side along the fingers, 3.2 cm across.
-PALM_ABOVE, PALM_HALF_LENGTH, PALM_HALF_WIDTH = 0.026, 0.105, 0.032
+PALM_ABOVE, PALM_HALF_LENGTH, PALM_HALF_WIDTH = 0.031, 0.105, 0.032
 MAX_GRASP_WIDTH = 0.07  # m: an object side the open fingers (8 cm apart) close across
 # An object wider than that both ways (a bowl, a mug) is grasped at its rim: the fingers close
 # across its wall, radially, at the top of one of the colliding geoms that reach its top.
@@ -43,11 +44,17 @@ REACH_COST = 0.1  # score per metre of the rim point from the shoulder: the near
 RIM_CARRY_STEP = 0.025  # m: the carry's target at most this far ahead of a rim-held object's hand
 ABOVE_Z_TOLERANCE = 0.03  # m: above the grasp point is reached at this height error (at full
 #                           reach the arm cannot lift the hand to the exact clearance height)
-FINGER_REACH, FINGER_BELOW = 0.0435, 0.012  # m: the open fingers' pads from the site along x,
-#                                             and the fingers' lowest point below the site
+OPEN = 0.08  # m between the fingers' pads, open
+FINGER_THICKNESS = 0.025  # m: a finger's outer face beyond its pad's (robosuite's finger collision mesh)
+RIM_OPENING, NARROW_COST = 0.05, 0.003  # m: the fingers open this far only about a rim where the
+#                                         open fingers would not fit (a bowl in a drawer)
+OPENING_TOLERANCE = 0.004  # m: the fingers' opening is held within this of the planned one
+FINGER_BELOW = 0.012  # m: the fingers' lowest point below the site
 FINGER_HALF_WIDTH = 0.01  # m: the fingers across their closing axis
 ROOM = 0.03  # m: room around the hand beyond this is as good as more
-PALM_WEIGHT = 0.5  # the palm's room counts half the fingers' (they go lower, beside the object)
+FINGER_MARGIN, TIGHT_COST = 0.01, 3.0  # m: less room than this beside a finger is the hand's
+#                                        positioning error (1-2 cm at full reach) from a collision
+PALM_WEIGHT = 0.25  # the palm's room counts a quarter of the fingers' (they go lower, beside the object)
 CLOSE_STEPS = 10  # the fingers close for at least this many steps ...
 CLOSE_STEPS_MAX = 16  # ... and on until they stop (a bowl's 3 mm wall: the fingers travel 7 cm)
 CLOSED_SPEED = 0.001  # m per step: the fingers have stopped on the object
@@ -178,6 +185,7 @@ class Expert:
     self.goal_ori = np.zeros((n, 3, 3))
     self.offset = np.zeros((n, 3))  # object centre - hand, measured after the lift
     self.grasp_xy = np.zeros((n, 2))  # grasp point - object centre, chosen when the approach starts
+    self.opening = np.full(n, OPEN)  # how far the fingers open for the approach
     self.carry_z = np.zeros(n)  # the hand's carrying height, fixed when the lift starts
     self.fresh = np.ones(n, bool)
     self._finger_q = [j["qposadr"] for j in meta["robot"]["gripper_joints"]]
@@ -207,7 +215,7 @@ class Expert:
     return site[:, :2], site[:, 2] + size[2]
 
   def _grasp_plan(self, t: Task, ids: np.ndarray, hand_mat: np.ndarray, centre: np.ndarray, grasp_z: np.ndarray):
-    """(hand orientation [n, 3, 3], grasp point - object centre [n, 2]): the fingers close across
+    """(hand orientation [n, 3, 3], grasp point - object centre [n, 2], finger opening [n]): the fingers close across
     a side of the object that fits between them, at a point along its other side where the
     palm keeps the most room from every other object standing above the palm's height."""
     a = self.batch.data
@@ -224,7 +232,9 @@ class Expert:
         world = a["xpos"][ids, t.body] + np.einsum("bij,j->bi", mat, point)
         turn = np.abs(np.arcsin(np.clip(f[:, 0] * axis[:, 1] - f[:, 1] * axis[:, 0], -1, 1)))
         reach = np.linalg.norm(world[:, :2] - a["xpos"][ids, self._shoulder, :2], axis=-1)
-        candidates.append((axis, world[:, :2] - centre[:, :2], 0.002 * turn / (np.pi / 2) + REACH_COST * reach))
+        cost = 0.002 * turn / (np.pi / 2) + REACH_COST * reach
+        candidates.append((axis, world[:, :2] - centre[:, :2], cost, OPEN))
+        candidates.append((axis, world[:, :2] - centre[:, :2], cost + NARROW_COST, RIM_OPENING))
     for across in (0, 1) if t.rim is None else ():
       if extent[across] > MAX_GRASP_WIDTH and not (across == int(np.argmin(extent[:2]))):
         continue
@@ -235,9 +245,10 @@ class Expert:
       other = other / np.maximum(np.linalg.norm(other, axis=-1, keepdims=True), 1e-9)
       reach = max(extent[along] / 2 - 0.015, 0.0)
       for frac in (0.0, -0.5, 0.5, -1.0, 1.0):
-        candidates.append((axis, other * frac * reach, 0.002 * abs(frac) + 0.001 * (extent[across] > extent[along])))
+        candidates.append((axis, other * frac * reach, 0.002 * abs(frac) + 0.001 * (extent[across] > extent[along]), OPEN))
     best_score = np.full(len(ids), -np.inf)
     best_axis, best_offset = np.zeros((len(ids), 2)), np.zeros((len(ids), 2))
+    best_opening = np.full(len(ids), OPEN)
     u = np.linspace(-PALM_HALF_LENGTH, PALM_HALF_LENGTH, 9)
     v = np.linspace(-PALM_HALF_WIDTH, PALM_HALF_WIDTH, 3)
     palm_z, finger_z = grasp_z + PALM_ABOVE, grasp_z - FINGER_BELOW
@@ -250,12 +261,14 @@ class Expert:
     top = gpos[..., 2] + np.einsum("bgj,gj->bg", np.abs(gmat[:, :, 2]), half)
     below_palm, below_tips = top < palm_z[:, None], top < finger_z[:, None]
     rise = np.array([0.0, 0.04, 0.08])  # the hand's column above its lowest points
-    for axis, offset, penalty in candidates:
+    for axis, offset, penalty, opening in candidates:
       normal = np.stack([-axis[:, 1], axis[:, 0]], -1)
       grasp = centre[:, :2] + offset
       palm = (grasp[:, None, None] + u[None, :, None, None] * axis[:, None, None]
               + v[None, None, :, None] * normal[:, None, None]).reshape(len(ids), -1, 2)
-      tips = (grasp[:, None, None] + np.array([-1, 1])[None, :, None, None] * FINGER_REACH * axis[:, None, None]
+      span = np.array([0.0, 0.5, 1.0]) * FINGER_THICKNESS + min(opening, OPEN) / 2  # inner face to outer
+      along = np.concatenate([-span, span])
+      tips = (grasp[:, None, None] + along[None, :, None, None] * axis[:, None, None]
               + np.array([-1, 0, 1])[None, None, :, None] * FINGER_HALF_WIDTH * normal[:, None, None]).reshape(len(ids), -1, 2)
       points = np.concatenate([
           np.concatenate([np.repeat(palm, 3, 1), (palm_z[:, None] + np.tile(rise, palm.shape[1]))[..., None]], -1),
@@ -265,17 +278,17 @@ class Expert:
       k = 3 * palm.shape[1]  # what stands lower than the palm (the fingers) is not in its way
       room_palm = np.minimum(np.where(below_palm[:, None], 1.0, dist[:, :k]).min(axis=(1, 2)), ROOM)
       room_tips = np.minimum(np.where(below_tips[:, None], 1.0, dist[:, k:]).min(axis=(1, 2)), ROOM)
-      score = room_tips + PALM_WEIGHT * room_palm - penalty
+      score = room_tips + PALM_WEIGHT * room_palm - penalty - TIGHT_COST * np.maximum(FINGER_MARGIN - room_tips, 0.0)
       if DEBUG: print("cand", (offset[0]).round(3), "tips", room_tips[0].round(4), "palm", room_palm[0].round(4), "pen", np.round(penalty if np.isscalar(penalty) else penalty[0], 4))
       better = score > best_score
       best_score = np.where(better, score, best_score)
-      best_axis[better], best_offset[better] = axis[better], offset[better]
+      best_axis[better], best_offset[better], best_opening[better] = axis[better], offset[better], opening
     angle = np.arctan2(f[:, 0] * best_axis[:, 1] - f[:, 1] * best_axis[:, 0], (f * best_axis).sum(-1))
     angle = (angle + np.pi / 2) % np.pi - np.pi / 2  # the fingers are symmetric: turn the least
     c, s = np.cos(angle), np.sin(angle)
     rz = np.zeros((len(ids), 3, 3))
     rz[:, 0, 0], rz[:, 0, 1], rz[:, 1, 0], rz[:, 1, 1], rz[:, 2, 2] = c, -s, s, c, 1.0
-    return rz @ hand_mat, best_offset
+    return rz @ hand_mat, best_offset, best_opening
 
   # ---------------------------------------------------------------- one control step
 
@@ -301,11 +314,16 @@ class Expert:
       start = self.fresh[ids] & (phase == ABOVE)
       if start.any():
         sel = ids[start]
-        self.goal_ori[sel], self.grasp_xy[sel] = self._grasp_plan(t, sel, hand_mat[sel], centre[start], grasp_z[start])
+        self.goal_ori[sel], self.grasp_xy[sel], self.opening[sel] = self._grasp_plan(
+            t, sel, hand_mat[sel], centre[start], grasp_z[start])
       grasp_xy = centre[:, :2] + self.grasp_xy[ids]
       carry_z = self.carry_z[ids]
       tgt = hand[ids].copy()
       g = np.full(ids.size, -1.0)
+      sel = (phase == ABOVE) | (phase == DESCEND)  # opened as far as the plan has room for
+      width = self.opening[ids[sel]]
+      g[sel] = np.where(gap[ids[sel]] > width + OPENING_TOLERANCE, 1.0,
+                        np.where(gap[ids[sel]] < width - OPENING_TOLERANCE, -1.0, 0.0))
       sel = phase == ABOVE
       tgt[sel] = np.c_[grasp_xy[sel], hi[sel, 2] + CLEARANCE]
       sel = phase == DESCEND
