@@ -41,6 +41,7 @@ RIM_DEPTH = 0.02  # m the grip site goes below the rim's top: the pads (site -4 
 #                    its top centimetre and the palm (2.6 cm above the site) stays clear of it
 REACH_COST = 0.1  # score per metre of the rim point from the shoulder: the near side of a far
 #                   bowl keeps the elbow off its limit (the arm is straight 0.8 m out)
+TIPPED_COST = 1.0  # score per metre a rim point lies below the rim's highest (a bowl leaning over)
 RIM_CARRY_STEP = 0.025  # m: the carry's target at most this far ahead of a rim-held object's hand
 ABOVE_Z_TOLERANCE = 0.03  # m: above the grasp point is reached at this height error (at full
 #                           reach the arm cannot lift the hand to the exact clearance height)
@@ -61,7 +62,6 @@ CLOSED_SPEED = 0.001  # m per step: the fingers have stopped on the object
 RELEASE_STEPS = 8
 PHASE_LIMIT = 60  # control steps before a phase gives up waiting and moves on
 HOLD_STEPS = 10  # control steps (0.5 s) the goal must keep holding after the expert is done
-import os; DEBUG = os.environ.get("EXPERT_DEBUG")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -226,13 +226,15 @@ class Expert:
     candidates = []  # (finger axis [n, 2], offset [n, 2], penalty)
     if t.rim is not None:  # across the wall at one of its rim points, the fingers radial
       middle = t.rim.mean(0)
+      highest = (a["xpos"][ids, t.body, None] + np.einsum("bij,kj->bki", mat, t.rim))[..., 2].max(1)
       for point in t.rim:
         axis = np.einsum("bij,j->bi", mat, point - middle)[:, :2]
         axis = axis / np.maximum(np.linalg.norm(axis, axis=-1, keepdims=True), 1e-9)
         world = a["xpos"][ids, t.body] + np.einsum("bij,j->bi", mat, point)
+        drop = highest - world[:, 2]  # a tipped bowl is taken at its high side, where the grasp height is
         turn = np.abs(np.arcsin(np.clip(f[:, 0] * axis[:, 1] - f[:, 1] * axis[:, 0], -1, 1)))
         reach = np.linalg.norm(world[:, :2] - a["xpos"][ids, self._shoulder, :2], axis=-1)
-        cost = 0.002 * turn / (np.pi / 2) + REACH_COST * reach
+        cost = 0.002 * turn / (np.pi / 2) + REACH_COST * reach + TIPPED_COST * drop
         candidates.append((axis, world[:, :2] - centre[:, :2], cost, OPEN))
         candidates.append((axis, world[:, :2] - centre[:, :2], cost + NARROW_COST, RIM_OPENING))
     for across in (0, 1) if t.rim is None else ():
@@ -279,7 +281,6 @@ class Expert:
       room_palm = np.minimum(np.where(below_palm[:, None], 1.0, dist[:, :k]).min(axis=(1, 2)), ROOM)
       room_tips = np.minimum(np.where(below_tips[:, None], 1.0, dist[:, k:]).min(axis=(1, 2)), ROOM)
       score = room_tips + PALM_WEIGHT * room_palm - penalty - TIGHT_COST * np.maximum(FINGER_MARGIN - room_tips, 0.0)
-      if DEBUG: print("cand", (offset[0]).round(3), "tips", room_tips[0].round(4), "palm", room_palm[0].round(4), "pen", np.round(penalty if np.isscalar(penalty) else penalty[0], 4))
       better = score > best_score
       best_score = np.where(better, score, best_score)
       best_axis[better], best_offset[better], best_opening[better] = axis[better], offset[better], opening
@@ -348,7 +349,8 @@ class Expert:
         z = place_top[sel] + (hand[ids[sel], 2] - centre[sel, 2])
       else:
         z = place_top[sel] + RELEASE_ABOVE + below
-      tgt[sel] = np.c_[place_xy[sel] - (centre[sel, :2] - hand[ids[sel], :2]), z]  # where it hangs now
+      aim = centre[sel, :2] if t.rim is None else self.batch.data["xpos"][ids[sel], t.body, :2]  # a bowl's base
+      tgt[sel] = np.c_[place_xy[sel] - (aim - hand[ids[sel], :2]), z]  # where it hangs now
       sel = phase == RELEASE
       tgt[sel] = hand[ids[sel]]
       sel = (phase == RETREAT) | (phase == DONE)
