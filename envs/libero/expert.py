@@ -37,7 +37,7 @@ MAX_GRASP_WIDTH = 0.07  # m: an object side the open fingers (8 cm apart) close 
 # An object wider than that both ways (a bowl, a mug) is grasped at its rim: the fingers close
 # across its wall, radially, at the top of one of the colliding geoms that reach its top.
 RIM_BAND = 0.005  # m: a geom whose top is this close to the object's top is part of the rim
-RIM_DEPTH = 0.02  # m the grip site goes below the rim's top: the pads (site -4 to +12 mm) cover
+RIM_DEPTH = 0.025  # m the grip site goes below the rim's top: the pads (site -4 to +12 mm) cover
 #                    its top centimetre and the palm (2.6 cm above the site) stays clear of it
 REACH_COST = 0.1  # score per metre of the rim point from the shoulder: the near side of a far
 #                   bowl keeps the elbow off its limit (the arm is straight 0.8 m out)
@@ -49,6 +49,9 @@ OPEN = 0.08  # m between the fingers' pads, open
 FINGER_THICKNESS = 0.025  # m: a finger's outer face beyond its pad's (robosuite's finger collision mesh)
 RIM_OPENING, NARROW_COST = 0.05, 0.003  # m: the fingers open this far only about a rim where the
 #                                         open fingers would not fit (a bowl in a drawer)
+OVERHANG_BAND = 0.005  # m: what hangs over an object's top (or reaches this far below it) ...
+ESCAPE, SLIDE_RAISE = 0.02, 0.004  # ... the object slides this far out from under, this much up,
+SLIDE_STEPS = 10  # control steps at most (a drawer's front wall may stop it), then goes up
 OPENING_TOLERANCE = 0.004  # m: the fingers' opening is held within this of the planned one
 FINGER_BELOW = 0.012  # m: the fingers' lowest point below the site
 FINGER_HALF_WIDTH = 0.01  # m: the fingers across their closing axis
@@ -187,6 +190,7 @@ class Expert:
     self.grasp_xy = np.zeros((n, 2))  # grasp point - object centre, chosen when the approach starts
     self.opening = np.full(n, OPEN)  # how far the fingers open for the approach
     self.carry_z = np.zeros(n)  # the hand's carrying height, fixed when the lift starts
+    self.lift_xy, self.lift_z = np.zeros((n, 2)), np.zeros(n)  # where the lift starts going up
     self.fresh = np.ones(n, bool)
     self._finger_q = [j["qposadr"] for j in meta["robot"]["gripper_joints"]]
     self.gap = np.zeros(n)  # the fingers' opening at the previous step
@@ -291,6 +295,29 @@ class Expert:
     rz[:, 0, 0], rz[:, 0, 1], rz[:, 1, 0], rz[:, 1, 1], rz[:, 2, 2] = c, -s, s, c, 1.0
     return rz @ hand_mat, best_offset, best_opening
 
+  def _escape(self, t: Task, ids: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
+    """[n, 2] where to slide a just-grasped object before lifting it: out from under whatever
+    hangs over it (a bowl at the back of a drawer, half under the cabinet's top), or 0."""
+    o = self._obstacles
+    keep = o["owner"] != t.body
+    a = self.batch.data
+    bmat = a["xmat"][ids[:, None], o["body"][keep]].reshape(len(ids), -1, 3, 3)
+    gpos = a["xpos"][ids[:, None], o["body"][keep]] + np.einsum("bgij,gj->bgi", bmat, o["centre"][keep])
+    gmat = np.einsum("bgij,gjk->bgik", bmat, o["rot"][keep])
+    half = o["half"][keep]
+    bottom = gpos[..., 2] - np.einsum("bgj,gj->bg", np.abs(gmat[:, :, 2]), half)
+    over = (bottom > hi[:, 2, None] - OVERHANG_BAND) & (bottom < hi[:, 2, None] + LIFT_CLEARANCE)
+    grid = np.linspace(0.0, 1.0, 7)
+    frac = np.stack(np.meshgrid(grid, grid), -1).reshape(-1, 2)
+    points = lo[:, None, :2] + frac[None] * (hi - lo)[:, None, :2]  # the object's footprint [n, p, 2]
+    diff = np.concatenate([points[:, :, None] - gpos[:, None, :, :2], np.zeros(points.shape[:2] + (gpos.shape[1], 1))], -1)
+    local = np.einsum("bgji,bpgj->bpgi", gmat, diff)
+    under = ((np.abs(local) <= half).all(-1) & over[:, None]).any(-1)  # [n, p]: footprint points covered
+    middle = (lo[:, :2] + hi[:, :2]) / 2
+    pull = middle - np.where(under[..., None], points, 0.0).sum(1) / np.maximum(under.sum(1), 1)[:, None]
+    pull = pull / np.maximum(np.linalg.norm(pull, axis=-1, keepdims=True), 1e-9)
+    return np.where(under.any(1)[:, None], pull * ESCAPE, 0.0)
+
   # ---------------------------------------------------------------- one control step
 
   def act(self) -> np.ndarray:
@@ -335,6 +362,8 @@ class Expert:
       sel = phase == LIFT
       g[sel] = 1.0
       tgt[sel, 2] = carry_z[sel]
+      slide = sel & (np.linalg.norm(self.lift_xy[ids] - hand[ids, :2], axis=-1) > 0.01) & (self.count[ids] < SLIDE_STEPS)
+      tgt[slide] = np.c_[self.lift_xy[ids[slide]], self.lift_z[ids[slide]] + SLIDE_RAISE]
       sel = phase == CARRY
       g[sel] = 1.0
       tgt[sel] = np.c_[place_xy[sel] - self.offset[ids[sel], :2], carry_z[sel]]
@@ -364,7 +393,7 @@ class Expert:
       done |= (phase == ABOVE) & (flat < 0.01) & (np.abs(tgt[:, 2] - hand[ids, 2]) < ABOVE_Z_TOLERANCE)
       done |= (phase == DESCEND) & (err < 0.006)
       done |= (phase == CLOSE) & (count >= CLOSE_STEPS) & ((closing[ids] < CLOSED_SPEED) | (count >= CLOSE_STEPS_MAX))
-      done |= (phase == LIFT) & (np.abs(tgt[:, 2] - hand[ids, 2]) < 0.02)
+      done |= (phase == LIFT) & (np.abs(carry_z - hand[ids, 2]) < 0.02)
       done |= (phase == CARRY) & (np.linalg.norm(tgt[:, :2] - hand[ids, :2], axis=-1) < 0.01)
       done |= (phase == LOWER) & (err < 0.008)
       done |= (phase == RELEASE) & (count >= RELEASE_STEPS)
@@ -373,6 +402,9 @@ class Expert:
       closed = done & (phase == CLOSE)  # the object still where it lay: the height to carry it at
       self.carry_z[ids[closed]] = (np.maximum(hi[closed, 2], place_top[closed]) + LIFT_CLEARANCE
                                    + (hand[ids[closed], 2] - lo[closed, 2]))
+      if closed.any():
+        self.lift_xy[ids[closed]] = hand[ids[closed], :2] + self._escape(t, ids[closed], lo[closed], hi[closed])
+        self.lift_z[ids[closed]] = hand[ids[closed], 2]
       lifted = done & (phase == LIFT)
       self.offset[ids[lifted]] = centre[lifted] - hand[ids[lifted]]
       nxt = np.where(done, phase + 1, phase)
