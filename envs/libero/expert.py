@@ -55,7 +55,7 @@ SLIDE_STEPS = 10  # control steps at most (a drawer's front wall may stop it), t
 OPENING_TOLERANCE = 0.004  # m: the fingers' opening is held within this of the planned one
 FINGER_BELOW = 0.012  # m: the fingers' lowest point below the site
 FINGER_HALF_WIDTH = 0.01  # m: the fingers across their closing axis
-ROOM = 0.03  # m: room around the hand beyond this is as good as more
+ROOM, FINGER_ROOM = 0.03, 0.02  # m: room around the palm (the fingers) beyond this is as good as more
 FINGER_MARGIN, TIGHT_COST = 0.01, 3.0  # m: less room than this beside a finger is the hand's
 #                                        positioning error (1-2 cm at full reach) from a collision
 PALM_WEIGHT = 0.25  # the palm's room counts a quarter of the fingers' (they go lower, beside the object)
@@ -283,7 +283,7 @@ class Expert:
       dist = np.linalg.norm(np.maximum(np.abs(local) - half, 0.0), axis=-1)  # [n, points, geoms]
       k = 3 * palm.shape[1]  # what stands lower than the palm (the fingers) is not in its way
       room_palm = np.minimum(np.where(below_palm[:, None], 1.0, dist[:, :k]).min(axis=(1, 2)), ROOM)
-      room_tips = np.minimum(np.where(below_tips[:, None], 1.0, dist[:, k:]).min(axis=(1, 2)), ROOM)
+      room_tips = np.minimum(np.where(below_tips[:, None], 1.0, dist[:, k:]).min(axis=(1, 2)), FINGER_ROOM)
       score = room_tips + PALM_WEIGHT * room_palm - penalty - TIGHT_COST * np.maximum(FINGER_MARGIN - room_tips, 0.0)
       better = score > best_score
       best_score = np.where(better, score, best_score)
