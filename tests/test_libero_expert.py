@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from envs.libero import controller as osc
-from envs.libero import engine, expert, scene
+from envs.libero import engine, expert, scene, suites
 
 
 def test_the_expert_puts_the_soup_in_the_basket_and_lets_go():
@@ -44,3 +44,22 @@ def test_the_actions_rotation_is_the_controllers_inverse():
   current = osc._axis_angle_matrix(rng.uniform(-2, 2, (16, 3)), np)
   desired = osc._axis_angle_matrix(v, np) @ current
   assert np.allclose(expert._rotation_error(desired, current), v, atol=1e-9)
+
+
+def test_the_black_bowl_is_taken_by_its_rim_and_placed_on_the_plate():
+  # The bowl (10.7 cm) is wider than the open fingers (8 cm): the plan closes them radially across
+  # its wall at the rim, and the trials end with the bowl on the plate, released.
+  b = engine.LiberoBatch(scene.scene("libero_spatial", 0), 2, nthread=1)
+  b.reset(suites.init_states("libero_spatial", 0)[:2])
+  e = expert.Expert(b)
+  t = e.tasks[0]
+  assert t.rim is not None and len(t.rim) >= 8
+  hand, hand_mat = e._hand()
+  lo, hi = e._object(t, np.arange(2))
+  ori, offset, opening = e._grasp_plan(t, np.arange(2), hand_mat, (lo + hi) / 2, hi[:, 2] - expert.RIM_DEPTH)
+  radius = np.linalg.norm(offset, axis=-1)
+  assert np.all((radius > 0.04) & (radius < 0.055)), radius  # at the wall, not the middle
+  fingers = ori[:, :2, 0] / np.linalg.norm(ori[:, :2, 0], axis=-1, keepdims=True)  # the site's x: the fingers
+  assert np.all(np.abs((fingers * offset).sum(-1)) / radius > 0.99)  # closing across the wall
+  row = expert.run("libero_spatial", 0, trials=3, nthread=1)
+  assert row["success"] == 1.0, row

@@ -29,11 +29,39 @@ GRASP_DEPTH = 0.03  # m below the object's top, at most half its height
 LIFT_CLEARANCE = 0.12  # m above the higher of the object's and the target's tops while carrying
 RELEASE_ABOVE = 0.03  # m between the object's bottom and the target's top (On) when opened
 # The Panda hand in the grip site's frame (robosuite's model, measured from its collision geoms):
-# the fingers close along the site's x axis, the palm's bottom is 2.6 cm above the site and the
+# the fingers close along the site's x axis, the palm's bottom is 3.1 cm above the site (its mesh's
+# lowest vertex) and the
 # palm reaches 10.5 cm either side along the fingers, 3.2 cm across.
-PALM_ABOVE, PALM_HALF_LENGTH, PALM_HALF_WIDTH = 0.026, 0.105, 0.032
+PALM_ABOVE, PALM_HALF_LENGTH, PALM_HALF_WIDTH = 0.031, 0.105, 0.032
 MAX_GRASP_WIDTH = 0.07  # m: an object side the open fingers (8 cm apart) close across
-CLOSE_STEPS = 10
+# An object wider than that both ways (a bowl, a mug) is grasped at its rim: the fingers close
+# across its wall, radially, at the top of one of the colliding geoms that reach its top.
+RIM_BAND = 0.005  # m: a geom whose top is this close to the object's top is part of the rim
+RIM_DEPTH = 0.025  # m the grip site goes below the rim's top: the pads (site -4 to +12 mm) cover
+#                    its top centimetre and the palm (2.6 cm above the site) stays clear of it
+REACH_COST = 0.1  # score per metre of the rim point from the shoulder: the near side of a far
+#                   bowl keeps the elbow off its limit (the arm is straight 0.8 m out)
+TIPPED_COST = 1.0  # score per metre a rim point lies below the rim's highest (a bowl leaning over)
+RIM_CARRY_STEP = 0.025  # m: the carry's target at most this far ahead of a rim-held object's hand
+ABOVE_Z_TOLERANCE = 0.03  # m: above the grasp point is reached at this height error (at full
+#                           reach the arm cannot lift the hand to the exact clearance height)
+OPEN = 0.08  # m between the fingers' pads, open
+FINGER_THICKNESS = 0.025  # m: a finger's outer face beyond its pad's (robosuite's finger collision mesh)
+RIM_OPENING, NARROW_COST = 0.05, 0.003  # m: the fingers open this far only about a rim where the
+#                                         open fingers would not fit (a bowl in a drawer)
+OVERHANG_BAND = 0.005  # m: what hangs over an object's top (or reaches this far below it) ...
+ESCAPE, SLIDE_RAISE = 0.02, 0.004  # ... the object slides this far out from under, this much up,
+SLIDE_STEPS = 10  # control steps at most (a drawer's front wall may stop it), then goes up
+OPENING_TOLERANCE = 0.004  # m: the fingers' opening is held within this of the planned one
+FINGER_BELOW = 0.012  # m: the fingers' lowest point below the site
+FINGER_HALF_WIDTH = 0.01  # m: the fingers across their closing axis
+ROOM, FINGER_ROOM = 0.03, 0.02  # m: room around the palm (the fingers) beyond this is as good as more
+FINGER_MARGIN, TIGHT_COST = 0.01, 3.0  # m: less room than this beside a finger is the hand's
+#                                        positioning error (1-2 cm at full reach) from a collision
+PALM_WEIGHT = 0.25  # the palm's room counts a quarter of the fingers' (they go lower, beside the object)
+CLOSE_STEPS = 10  # the fingers close for at least this many steps ...
+CLOSE_STEPS_MAX = 16  # ... and on until they stop (a bowl's 3 mm wall: the fingers travel 7 cm)
+CLOSED_SPEED = 0.001  # m per step: the fingers have stopped on the object
 RELEASE_STEPS = 8
 PHASE_LIMIT = 60  # control steps before a phase gives up waiting and moves on
 HOLD_STEPS = 10  # control steps (0.5 s) the goal must keep holding after the expert is done
@@ -48,6 +76,7 @@ class Task:
   target_body: int = -1  # On(object): the target's body ...
   target_box: np.ndarray | None = None  # ... and its box
   site: int = -1  # In/On(region): the region's site
+  rim: np.ndarray | None = None  # [k, 3] rim points (body frame) of an object grasped at its rim
 
 
 def _box(model: mujoco.MjModel, body: int) -> np.ndarray:
@@ -80,6 +109,47 @@ def _box(model: mujoco.MjModel, body: int) -> np.ndarray:
   return np.stack([pts.min(0), pts.max(0)])
 
 
+def _geoms(model: mujoco.MjModel, bodies) -> dict[str, np.ndarray]:
+  """The colliding geoms of the given bodies' subtrees as oriented boxes (their bounding boxes in
+  their own frames): the owner (which of `bodies`), the geom's body, centre and rotation in that
+  body's frame, half sizes. A cabinet's drawer or a basket is its walls, not its whole box."""
+  owner, body, centre, rot, half = [], [], [], [], []
+  for g in range(model.ngeom):
+    if not (model.geom_contype[g] or model.geom_conaffinity[g]):
+      continue
+    b = int(model.geom_bodyid[g])
+    while b not in bodies and b != 0:
+      b = int(model.body_parentid[b])
+    if b == 0:
+      continue
+    r = np.zeros(9)
+    mujoco.mju_quat2Mat(r, model.geom_quat[g])
+    owner.append(b)
+    body.append(int(model.geom_bodyid[g]))
+    centre.append(model.geom_pos[g] + r.reshape(3, 3) @ model.geom_aabb[g, :3])
+    rot.append(r.reshape(3, 3))
+    half.append(model.geom_aabb[g, 3:])
+  return dict(owner=np.array(owner), body=np.array(body), centre=np.array(centre), rot=np.array(rot),
+              half=np.array(half))
+
+
+def _rim(model: mujoco.MjModel, body: int, box: np.ndarray) -> np.ndarray | None:
+  """[k, 3] body-frame centres of the colliding boxes that reach the top of an object too wide for the
+  fingers both ways (its rim: a bowl's or a mug's wall), or None for an object grasped across."""
+  if (box[1, :2] - box[0, :2]).min() <= MAX_GRASP_WIDTH:
+    return None
+  points = []
+  for g in range(model.ngeom):
+    if model.geom_bodyid[g] != body or not (model.geom_contype[g] or model.geom_conaffinity[g]):
+      continue
+    rot = np.zeros(9)
+    mujoco.mju_quat2Mat(rot, model.geom_quat[g])
+    top = model.geom_pos[g, 2] + np.abs(rot.reshape(3, 3)[2] * model.geom_size[g]).sum()
+    if model.geom_type[g] == mujoco.mjtGeom.mjGEOM_BOX and top > box[1, 2] - RIM_BAND:
+      points.append(model.geom_pos[g].copy())
+  return np.array(points) if len(points) >= 3 else None
+
+
 def _world_box(box: np.ndarray, pos: np.ndarray, mat: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
   """(lower, upper) [B, 3] world bounds of a body box at poses pos [B, 3], mat [B, 3, 3]."""
   signs = np.array(np.meshgrid(*[[0, 1]] * 3)).reshape(3, -1).T
@@ -99,7 +169,8 @@ class Expert:
       if atom.test not in ("in_region", "on_region", "on_object"):
         raise NotImplementedError(f"{meta['task']}: no scripted expert for {atom.predicate}{atom.args} yet "
                                   "(envs/libero/expert.py scripts In and On of a movable object)")
-      kw = dict(atom=atom, body=atom.body, box=_box(model, atom.body))
+      box = _box(model, atom.body)
+      kw = dict(atom=atom, body=atom.body, box=box, rim=_rim(model, atom.body, box))
       if atom.test == "on_object":
         kw.update(target_body=atom.target_body, target_box=_box(model, atom.target_body))
       else:
@@ -107,8 +178,9 @@ class Expert:
       self.tasks.append(Task(**kw))
     fingers = [int(model.jnt_bodyid[model.joint(j["name"]).id]) for j in meta["robot"]["gripper_joints"]]
     self._fingers = fingers
+    self._shoulder = int(model.jnt_bodyid[model.joint(meta["robot"]["arm_joints"][0]["name"]).id])
     bodies = {model.body(o["body"]).id for o in meta["objects"].values()}
-    self._obstacles = {b: _box(model, b) for b in sorted(bodies)}  # what the palm must clear
+    self._obstacles = _geoms(model, bodies)  # what the hand must clear
     n = batch.num_envs
     self.task = np.zeros(n, np.int64)  # which atom each env works on
     self.phase = np.zeros(n, np.int64)
@@ -116,8 +188,12 @@ class Expert:
     self.goal_ori = np.zeros((n, 3, 3))
     self.offset = np.zeros((n, 3))  # object centre - hand, measured after the lift
     self.grasp_xy = np.zeros((n, 2))  # grasp point - object centre, chosen when the approach starts
+    self.opening = np.full(n, OPEN)  # how far the fingers open for the approach
     self.carry_z = np.zeros(n)  # the hand's carrying height, fixed when the lift starts
+    self.lift_xy, self.lift_z = np.zeros((n, 2)), np.zeros(n)  # where the lift starts going up
     self.fresh = np.ones(n, bool)
+    self._finger_q = [j["qposadr"] for j in meta["robot"]["gripper_joints"]]
+    self.gap = np.zeros(n)  # the fingers' opening at the previous step
 
   # ---------------------------------------------------------------- what the expert reads
 
@@ -143,7 +219,7 @@ class Expert:
     return site[:, :2], site[:, 2] + size[2]
 
   def _grasp_plan(self, t: Task, ids: np.ndarray, hand_mat: np.ndarray, centre: np.ndarray, grasp_z: np.ndarray):
-    """(hand orientation [n, 3, 3], grasp point - object centre [n, 2]): the fingers close across
+    """(hand orientation [n, 3, 3], grasp point - object centre [n, 2], finger opening [n]): the fingers close across
     a side of the object that fits between them, at a point along its other side where the
     palm keeps the most room from every other object standing above the palm's height."""
     a = self.batch.data
@@ -152,7 +228,20 @@ class Expert:
     fingers = a["xpos"][ids, self._fingers[0]] - a["xpos"][ids, self._fingers[1]]
     f = fingers[:, :2] / np.maximum(np.linalg.norm(fingers[:, :2], axis=-1, keepdims=True), 1e-9)
     candidates = []  # (finger axis [n, 2], offset [n, 2], penalty)
-    for across in (0, 1):
+    if t.rim is not None:  # across the wall at one of its rim points, the fingers radial
+      middle = t.rim.mean(0)
+      highest = (a["xpos"][ids, t.body, None] + np.einsum("bij,kj->bki", mat, t.rim))[..., 2].max(1)
+      for point in t.rim:
+        axis = np.einsum("bij,j->bi", mat, point - middle)[:, :2]
+        axis = axis / np.maximum(np.linalg.norm(axis, axis=-1, keepdims=True), 1e-9)
+        world = a["xpos"][ids, t.body] + np.einsum("bij,j->bi", mat, point)
+        drop = highest - world[:, 2]  # a tipped bowl is taken at its high side, where the grasp height is
+        turn = np.abs(np.arcsin(np.clip(f[:, 0] * axis[:, 1] - f[:, 1] * axis[:, 0], -1, 1)))
+        reach = np.linalg.norm(world[:, :2] - a["xpos"][ids, self._shoulder, :2], axis=-1)
+        cost = 0.002 * turn / (np.pi / 2) + REACH_COST * reach + TIPPED_COST * drop
+        candidates.append((axis, world[:, :2] - centre[:, :2], cost, OPEN))
+        candidates.append((axis, world[:, :2] - centre[:, :2], cost + NARROW_COST, RIM_OPENING))
+    for across in (0, 1) if t.rim is None else ():
       if extent[across] > MAX_GRASP_WIDTH and not (across == int(np.argmin(extent[:2]))):
         continue
       along = 1 - across
@@ -162,34 +251,72 @@ class Expert:
       other = other / np.maximum(np.linalg.norm(other, axis=-1, keepdims=True), 1e-9)
       reach = max(extent[along] / 2 - 0.015, 0.0)
       for frac in (0.0, -0.5, 0.5, -1.0, 1.0):
-        candidates.append((axis, other * frac * reach, 0.002 * abs(frac) + 0.001 * (extent[across] > extent[along])))
+        candidates.append((axis, other * frac * reach, 0.002 * abs(frac) + 0.001 * (extent[across] > extent[along]), OPEN))
     best_score = np.full(len(ids), -np.inf)
     best_axis, best_offset = np.zeros((len(ids), 2)), np.zeros((len(ids), 2))
+    best_opening = np.full(len(ids), OPEN)
     u = np.linspace(-PALM_HALF_LENGTH, PALM_HALF_LENGTH, 9)
     v = np.linspace(-PALM_HALF_WIDTH, PALM_HALF_WIDTH, 3)
-    palm_z = grasp_z + PALM_ABOVE
-    for axis, offset, penalty in candidates:
+    palm_z, finger_z = grasp_z + PALM_ABOVE, grasp_z - FINGER_BELOW
+    o = self._obstacles
+    keep = o["owner"] != t.body
+    bmat = a["xmat"][ids[:, None], o["body"][keep]].reshape(len(ids), -1, 3, 3)
+    gpos = a["xpos"][ids[:, None], o["body"][keep]] + np.einsum("bgij,gj->bgi", bmat, o["centre"][keep])
+    gmat = np.einsum("bgij,gjk->bgik", bmat, o["rot"][keep])
+    half = o["half"][keep]
+    top = gpos[..., 2] + np.einsum("bgj,gj->bg", np.abs(gmat[:, :, 2]), half)
+    below_palm, below_tips = top < palm_z[:, None], top < finger_z[:, None]
+    rise = np.array([0.0, 0.04, 0.08])  # the hand's column above its lowest points
+    for axis, offset, penalty, opening in candidates:
       normal = np.stack([-axis[:, 1], axis[:, 0]], -1)
-      points = (centre[:, None, None, :2] + offset[:, None, None] + u[None, :, None, None] * axis[:, None, None]
-                + v[None, None, :, None] * normal[:, None, None]).reshape(len(ids), -1, 2)
-      clearance = np.full(len(ids), 1.0)
-      for body, box in self._obstacles.items():
-        if body == t.body:
-          continue
-        lo, hi = _world_box(box, a["xpos"][ids, body], a["xmat"][ids, body].reshape(-1, 3, 3))
-        gap = np.maximum(np.maximum(lo[:, None, :2] - points, points - hi[:, None, :2]), 0.0)
-        dist = np.linalg.norm(gap, axis=-1).min(axis=1)
-        clearance = np.where(hi[:, 2] > palm_z, np.minimum(clearance, dist), clearance)
-      score = np.minimum(clearance, 0.03) - penalty  # beyond 3 cm, room is room
+      grasp = centre[:, :2] + offset
+      palm = (grasp[:, None, None] + u[None, :, None, None] * axis[:, None, None]
+              + v[None, None, :, None] * normal[:, None, None]).reshape(len(ids), -1, 2)
+      span = np.array([0.0, 0.5, 1.0]) * FINGER_THICKNESS + min(opening, OPEN) / 2  # inner face to outer
+      along = np.concatenate([-span, span])
+      tips = (grasp[:, None, None] + along[None, :, None, None] * axis[:, None, None]
+              + np.array([-1, 0, 1])[None, None, :, None] * FINGER_HALF_WIDTH * normal[:, None, None]).reshape(len(ids), -1, 2)
+      points = np.concatenate([
+          np.concatenate([np.repeat(palm, 3, 1), (palm_z[:, None] + np.tile(rise, palm.shape[1]))[..., None]], -1),
+          np.concatenate([np.repeat(tips, 3, 1), (finger_z[:, None] + np.tile(rise, tips.shape[1]))[..., None]], -1)], 1)
+      local = np.einsum("bgji,bpgj->bpgi", gmat, points[:, :, None] - gpos[:, None])  # [n, points, geoms, 3]
+      dist = np.linalg.norm(np.maximum(np.abs(local) - half, 0.0), axis=-1)  # [n, points, geoms]
+      k = 3 * palm.shape[1]  # what stands lower than the palm (the fingers) is not in its way
+      room_palm = np.minimum(np.where(below_palm[:, None], 1.0, dist[:, :k]).min(axis=(1, 2)), ROOM)
+      room_tips = np.minimum(np.where(below_tips[:, None], 1.0, dist[:, k:]).min(axis=(1, 2)), FINGER_ROOM)
+      score = room_tips + PALM_WEIGHT * room_palm - penalty - TIGHT_COST * np.maximum(FINGER_MARGIN - room_tips, 0.0)
       better = score > best_score
       best_score = np.where(better, score, best_score)
-      best_axis[better], best_offset[better] = axis[better], offset[better]
+      best_axis[better], best_offset[better], best_opening[better] = axis[better], offset[better], opening
     angle = np.arctan2(f[:, 0] * best_axis[:, 1] - f[:, 1] * best_axis[:, 0], (f * best_axis).sum(-1))
     angle = (angle + np.pi / 2) % np.pi - np.pi / 2  # the fingers are symmetric: turn the least
     c, s = np.cos(angle), np.sin(angle)
     rz = np.zeros((len(ids), 3, 3))
     rz[:, 0, 0], rz[:, 0, 1], rz[:, 1, 0], rz[:, 1, 1], rz[:, 2, 2] = c, -s, s, c, 1.0
-    return rz @ hand_mat, best_offset
+    return rz @ hand_mat, best_offset, best_opening
+
+  def _escape(self, t: Task, ids: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
+    """[n, 2] where to slide a just-grasped object before lifting it: out from under whatever
+    hangs over it (a bowl at the back of a drawer, half under the cabinet's top), or 0."""
+    o = self._obstacles
+    keep = o["owner"] != t.body
+    a = self.batch.data
+    bmat = a["xmat"][ids[:, None], o["body"][keep]].reshape(len(ids), -1, 3, 3)
+    gpos = a["xpos"][ids[:, None], o["body"][keep]] + np.einsum("bgij,gj->bgi", bmat, o["centre"][keep])
+    gmat = np.einsum("bgij,gjk->bgik", bmat, o["rot"][keep])
+    half = o["half"][keep]
+    bottom = gpos[..., 2] - np.einsum("bgj,gj->bg", np.abs(gmat[:, :, 2]), half)
+    over = (bottom > hi[:, 2, None] - OVERHANG_BAND) & (bottom < hi[:, 2, None] + LIFT_CLEARANCE)
+    grid = np.linspace(0.0, 1.0, 7)
+    frac = np.stack(np.meshgrid(grid, grid), -1).reshape(-1, 2)
+    points = lo[:, None, :2] + frac[None] * (hi - lo)[:, None, :2]  # the object's footprint [n, p, 2]
+    diff = np.concatenate([points[:, :, None] - gpos[:, None, :, :2], np.zeros(points.shape[:2] + (gpos.shape[1], 1))], -1)
+    local = np.einsum("bgji,bpgj->bpgi", gmat, diff)
+    under = ((np.abs(local) <= half).all(-1) & over[:, None]).any(-1)  # [n, p]: footprint points covered
+    middle = (lo[:, :2] + hi[:, :2]) / 2
+    pull = middle - np.where(under[..., None], points, 0.0).sum(1) / np.maximum(under.sum(1), 1)[:, None]
+    pull = pull / np.maximum(np.linalg.norm(pull, axis=-1, keepdims=True), 1e-9)
+    return np.where(under.any(1)[:, None], pull * ESCAPE, 0.0)
 
   # ---------------------------------------------------------------- one control step
 
@@ -197,6 +324,9 @@ class Expert:
     """LIBERO actions [B, 7] for the batch's current state; advances the state machines."""
     n = self.batch.num_envs
     hand, hand_mat = self._hand()
+    q = self.batch.data["qpos"]
+    gap = np.abs(q[:, self._finger_q[0]] - q[:, self._finger_q[1]])
+    closing, self.gap = np.abs(gap - self.gap), gap
     target = hand.copy()
     grip = np.full(n, -1.0)
     for k, t in enumerate(self.tasks):
@@ -208,15 +338,20 @@ class Expert:
       place_xy, place_top = self._target(t, ids)
       phase = self.phase[ids]
       height = hi[:, 2] - lo[:, 2]
-      grasp_z = hi[:, 2] - np.minimum(GRASP_DEPTH, height / 2)
+      grasp_z = hi[:, 2] - (np.minimum(GRASP_DEPTH, height / 2) if t.rim is None else RIM_DEPTH)
       start = self.fresh[ids] & (phase == ABOVE)
       if start.any():
         sel = ids[start]
-        self.goal_ori[sel], self.grasp_xy[sel] = self._grasp_plan(t, sel, hand_mat[sel], centre[start], grasp_z[start])
+        self.goal_ori[sel], self.grasp_xy[sel], self.opening[sel] = self._grasp_plan(
+            t, sel, hand_mat[sel], centre[start], grasp_z[start])
       grasp_xy = centre[:, :2] + self.grasp_xy[ids]
       carry_z = self.carry_z[ids]
       tgt = hand[ids].copy()
       g = np.full(ids.size, -1.0)
+      sel = (phase == ABOVE) | (phase == DESCEND)  # opened as far as the plan has room for
+      width = self.opening[ids[sel]]
+      g[sel] = np.where(gap[ids[sel]] > width + OPENING_TOLERANCE, 1.0,
+                        np.where(gap[ids[sel]] < width - OPENING_TOLERANCE, -1.0, 0.0))
       sel = phase == ABOVE
       tgt[sel] = np.c_[grasp_xy[sel], hi[sel, 2] + CLEARANCE]
       sel = phase == DESCEND
@@ -227,9 +362,15 @@ class Expert:
       sel = phase == LIFT
       g[sel] = 1.0
       tgt[sel, 2] = carry_z[sel]
+      slide = sel & (np.linalg.norm(self.lift_xy[ids] - hand[ids, :2], axis=-1) > 0.01) & (self.count[ids] < SLIDE_STEPS)
+      tgt[slide] = np.c_[self.lift_xy[ids[slide]], self.lift_z[ids[slide]] + SLIDE_RAISE]
       sel = phase == CARRY
       g[sel] = 1.0
       tgt[sel] = np.c_[place_xy[sel] - self.offset[ids[sel], :2], carry_z[sel]]
+      if t.rim is not None:  # held by a wall 3 mm thick: no jerks
+        step = tgt[sel] - hand[ids[sel]]
+        tgt[sel] = hand[ids[sel]] + step * np.minimum(1.0, RIM_CARRY_STEP / np.maximum(
+            np.linalg.norm(step, axis=-1, keepdims=True), 1e-9))
       sel = phase == LOWER
       g[sel] = 1.0
       below = hand[ids[sel], 2] - lo[sel, 2]  # the hand's height over the object's bottom
@@ -237,7 +378,8 @@ class Expert:
         z = place_top[sel] + (hand[ids[sel], 2] - centre[sel, 2])
       else:
         z = place_top[sel] + RELEASE_ABOVE + below
-      tgt[sel] = np.c_[place_xy[sel] - self.offset[ids[sel], :2], z]
+      aim = centre[sel, :2] if t.rim is None else self.batch.data["xpos"][ids[sel], t.body, :2]  # a bowl's base
+      tgt[sel] = np.c_[place_xy[sel] - (aim - hand[ids[sel], :2]), z]  # where it hangs now
       sel = phase == RELEASE
       tgt[sel] = hand[ids[sel]]
       sel = (phase == RETREAT) | (phase == DONE)
@@ -247,10 +389,11 @@ class Expert:
       err = np.linalg.norm(tgt - hand[ids], axis=-1)
       count = self.count[ids] + 1
       done = np.zeros(ids.size, bool)
-      done |= (phase == ABOVE) & (err < 0.01)
+      flat = np.linalg.norm(tgt[:, :2] - hand[ids, :2], axis=-1)
+      done |= (phase == ABOVE) & (flat < 0.01) & (np.abs(tgt[:, 2] - hand[ids, 2]) < ABOVE_Z_TOLERANCE)
       done |= (phase == DESCEND) & (err < 0.006)
-      done |= (phase == CLOSE) & (count >= CLOSE_STEPS)
-      done |= (phase == LIFT) & (np.abs(tgt[:, 2] - hand[ids, 2]) < 0.02)
+      done |= (phase == CLOSE) & (count >= CLOSE_STEPS) & ((closing[ids] < CLOSED_SPEED) | (count >= CLOSE_STEPS_MAX))
+      done |= (phase == LIFT) & (np.abs(carry_z - hand[ids, 2]) < 0.02)
       done |= (phase == CARRY) & (np.linalg.norm(tgt[:, :2] - hand[ids, :2], axis=-1) < 0.01)
       done |= (phase == LOWER) & (err < 0.008)
       done |= (phase == RELEASE) & (count >= RELEASE_STEPS)
@@ -259,6 +402,9 @@ class Expert:
       closed = done & (phase == CLOSE)  # the object still where it lay: the height to carry it at
       self.carry_z[ids[closed]] = (np.maximum(hi[closed, 2], place_top[closed]) + LIFT_CLEARANCE
                                    + (hand[ids[closed], 2] - lo[closed, 2]))
+      if closed.any():
+        self.lift_xy[ids[closed]] = hand[ids[closed], :2] + self._escape(t, ids[closed], lo[closed], hi[closed])
+        self.lift_z[ids[closed]] = hand[ids[closed], 2]
       lifted = done & (phase == LIFT)
       self.offset[ids[lifted]] = centre[lifted] - hand[ids[lifted]]
       nxt = np.where(done, phase + 1, phase)
