@@ -19,6 +19,7 @@ import dataclasses
 import mujoco
 import numpy as np
 
+from envs.libero import articulated
 from envs.libero import engine as engines
 from envs.libero import predicates
 
@@ -95,7 +96,12 @@ class Expert:
     self.batch = batch
     model, meta = batch.model, batch.scene.meta
     self.tasks = []
-    for atom in batch.goal.atoms:
+    steps = {}  # plan index -> articulated.Step: done by self.articulated
+    for kind, atom in articulated.plan(batch):
+      if kind != articulated.PLACE:
+        steps[len(self.tasks)] = articulated.make_step(batch, kind, atom)
+        self.tasks.append(steps[len(self.tasks)])
+        continue
       if atom.test not in ("in_region", "on_region", "on_object"):
         raise NotImplementedError(f"{meta['task']}: no scripted expert for {atom.predicate}{atom.args} yet "
                                   "(envs/libero/expert.py scripts In and On of a movable object)")
@@ -118,6 +124,7 @@ class Expert:
     self.grasp_xy = np.zeros((n, 2))  # grasp point - object centre, chosen when the approach starts
     self.carry_z = np.zeros(n)  # the hand's carrying height, fixed when the lift starts
     self.fresh = np.ones(n, bool)
+    self.articulated = articulated.Articulated(self, steps)
 
   # ---------------------------------------------------------------- what the expert reads
 
@@ -201,7 +208,7 @@ class Expert:
     grip = np.full(n, -1.0)
     for k, t in enumerate(self.tasks):
       ids = np.flatnonzero(self.task == k)
-      if not ids.size:
+      if not ids.size or not isinstance(t, Task):  # articulated steps: self.articulated below
         continue
       lo, hi = self._object(t, ids)
       centre = (lo + hi) / 2
@@ -269,6 +276,7 @@ class Expert:
       self.phase[ids] = nxt
       self.count[ids] = np.where(done, 0, count)
       self.fresh[ids] = done
+    self.articulated.act(hand, hand_mat, target, grip)
     pos = np.clip((target - hand) / 0.05, -1, 1)
     rot = np.clip(_rotation_error(self.goal_ori, hand_mat) / 0.5, -1, 1)
     return np.concatenate([pos, rot, grip[:, None]], axis=1)
