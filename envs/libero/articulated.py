@@ -41,7 +41,8 @@ SLIDE_LEAD = 0.04  # m: the handle's goal runs this far ahead of the drawer whil
 SLIDE_PAST = 0.01  # m: ... toward this far past the joint's goal
 HANDLE_OPENING = 0.026  # m: each finger's opening (its joint) when reaching for a handle bar
 FINGER_DEADBAND = 0.004  # m
-HINGE_LEAD = 0.2  # rad: a pushed door's (or twisted knob's) goal runs this far ahead of it
+HINGE_LEAD = 0.2  # rad: a pushed door's goal runs this far ahead of it
+TWIST_LEAD, TWIST_PAST = 0.4, 0.15  # rad: a twisted knob's goal runs this far ahead, toward this far past its goal
 PRE_BACK = 0.05  # m in front of a handle (or behind a pushed face) before moving in
 PUSH_BACK = 0.02  # m: the pusher waits this far off the face before pushing
 BACK_OFF = 0.08  # m the hand backs away after letting go
@@ -387,7 +388,7 @@ class Articulated:
         contact = a["xpos"][ids, step.body] + np.einsum("bij,j->bi", mat, step.grip_local)
         pre = contact + np.array([0.0, 0.0, SAFE_UP])
         q = a["qpos"][ids, model.jnt_qposadr[step.joint]]
-        dq = np.clip(step.goal_q - q, -HINGE_LEAD, HINGE_LEAD) + q - self.q0[ids]
+        dq = np.clip(step.goal_q + step.sign * TWIST_PAST - q, -TWIST_LEAD, TWIST_LEAD) + q - self.q0[ids]
         axis, anchor = a["xaxis"][ids, step.joint], a["xanchor"][ids, step.joint]
         rot = _rodrigues(axis, dq)
         drive = anchor + np.einsum("bij,bj->bi", rot, self.grip_pos[ids] - anchor)
@@ -434,8 +435,9 @@ class Articulated:
       capped = hand[ids] + (tgt - hand[ids]) * np.minimum(1.0, cap / np.maximum(step_len, 1e-9))
       tgt = np.where(slow[:, None], capped, tgt)
       # the controller has no integral term: a horizontal hand sags by up to a centimetre; near
-      # its goal the hand's goal is moved by the error it keeps (integrated, bounded)
-      near = (np.linalg.norm(tgt - hand[ids], axis=-1) < INTEGRAL_NEAR) & (phase != DRIVE)  # a drive's goal leads
+      # its goal the hand's goal is moved by the error it keeps (integrated, bounded; not while a
+      # drive's goal leads the hand on purpose)
+      near = (np.linalg.norm(tgt - hand[ids], axis=-1) < INTEGRAL_NEAR) & (phase != DRIVE) & (step.kind == PULL)
       self.integral[ids] = np.where(near[:, None], np.clip(self.integral[ids] + INTEGRAL_GAIN * (tgt - hand[ids]),
                                                            -INTEGRAL_MAX, INTEGRAL_MAX), self.integral[ids])
       tgt = tgt + self.integral[ids]
