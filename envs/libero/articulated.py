@@ -15,8 +15,9 @@ privileged state (the joints' axes, anchors and positions; the moving bodies' ge
 - a hinge without a handle we grasp (a door) is pushed on its panel's outer face near the top,
   the fingertips leading the door's face along its arc and the hand turning with the door;
 - a switch (the stove's knob) is grasped across its raised part and twisted about its axis;
-- a pushed object is shoved by the open fingers, the pusher re-aimed every step at the line
-  from the object's centre to the region's.
+- an object too wide and flat to grasp across (a plate) is dragged over the table by its rim,
+  pinched on the side toward the region (the plate's far side may be against a cabinet), the
+  hand's goal re-aimed every step from the object's centre to the region's.
 Each step ends with the gripper open, the hand backed off and turned back to the reset pose's
 downward orientation (what the pick-and-place expert starts from); a joint step whose atom
 still fails then is tried again.
@@ -54,9 +55,12 @@ FINGERTIP = 0.012
 PALM_CLEAR = 0.01  # m the palm keeps above a pushed door's top
 KNOB_RAISED = 0.03  # m: a knob's geoms whose tops are this close to its highest are its grip
 KNOB_GRIP_DEPTH = 0.015  # m below the knob's top
-PUSH_TIP_HEIGHT = 0.005  # m: the pushing fingertips over the pushed object's bottom
-PUSH_LEAD = 0.03  # m: the pusher's goal runs this far into the object
-PUSH_DONE = 0.01  # m: a push stops with the object's centre this close to the region's
+PINCH_RADIUS = 0.058  # m from a dragged dish's centre: where its rim is pinched (LIBERO's plate: 3.0-6.7 cm)
+PINCH_HEIGHT = 0.014  # m: the grip site over the dish's bottom (its rim there ~1.1 cm up; fingertips 1.2 cm below the site)
+DRAG_PAST, DRAG_STEP = 0.015, 0.02  # m
+FINGERS_EMPTY = 0.003  # m: the fingers' joints this close to shut hold nothing
+PUSH_MARGIN = 0.01  # m: a pushed object inside its region by this much counts as there
+PUSH_DONE = 0.025  # m: a push stops with the object's centre this close to the region's
 PUSH_MIN_WIDTH = 0.07  # m: an object wider than the open fingers on both sides ...
 PUSH_MAX_HEIGHT = 0.03  # m: ... and this flat is pushed, not grasped
 INTEGRAL_GAIN, INTEGRAL_NEAR, INTEGRAL_MAX = 0.15, 0.03, 0.03  # per step, m, m
@@ -266,7 +270,7 @@ class Articulated:
     a = self.batch.data
     if step.kind == PUSH:  # in the region's middle half (the atom's own test also reads heights)
       d = a["site_xpos"][ids, step.site, :2] - a["xpos"][ids, step.atom.body, :2]
-      return np.linalg.norm(d, axis=-1) < min(step.atom.size[:2]) / 2
+      return np.linalg.norm(d, axis=-1) < min(step.atom.size[:2]) - PUSH_MARGIN
     return predicates._joints(step.atom, predicates.GoalInputs(None, None, None, None, a["qpos"][ids], None))
 
   def _preset(self, ids: np.ndarray, opening: float) -> np.ndarray:
@@ -310,8 +314,8 @@ class Articulated:
       self.away[ids] = [0.0, 0.0, 1.0]
     else:
       u = _unit(a["site_xpos"][ids, step.site, :2] - a["xpos"][ids, step.atom.body, :2])
-      self.ori[ids] = _yaw(_yaw_to(down, np.stack([-u[:, 1], u[:, 0]], -1))) @ down
-      self.away[ids] = np.c_[-u, np.zeros(len(ids))]
+      self.ori[ids] = _yaw(_yaw_to(down, u)) @ down  # the fingers close across the rim (radially)
+      self.away[ids] = [0.0, 0.0, 1.0]
 
   def _opening(self, step: Step, ids: np.ndarray) -> np.ndarray:
     """[n, 3] the world direction a slide's handle moves as its joint opens."""
@@ -401,15 +405,16 @@ class Articulated:
         centre = (lo + hi) / 2
         goal = a["site_xpos"][ids, step.site, :2]
         u = _unit(goal - centre[:, :2])
-        radius = ((hi - lo)[:, :2].max(-1)) / 2
-        z = lo[:, 2] + PUSH_TIP_HEIGHT + FINGERTIP
-        behind = centre[:, :2] - u * (radius + FINGER_HALF)[:, None]
-        contact = np.c_[behind - u * PUSH_BACK, z]
-        pre = np.c_[behind - u * PRE_BACK, hi[:, 2] + SAFE_UP]
-        remaining = np.linalg.norm(goal - centre[:, :2], axis=-1)
-        drive = np.c_[behind + u * np.minimum(PUSH_LEAD, remaining)[:, None], z]
-        ori = _yaw(_yaw_to(np.broadcast_to(self.down, (ids.size, 3, 3)), np.stack([-u[:, 1], u[:, 0]], -1))) @ self.down
-        g_drive = -1.0
+        # the fingers pinch the dish's rim on its side toward the goal (one finger over the rim,
+        # one outside it) and drag it there
+        pinch = centre[:, :2] + u * PINCH_RADIUS
+        z = lo[:, 2] + PINCH_HEIGHT
+        contact, pre = np.c_[pinch, z], np.c_[pinch, hi[:, 2] + SAFE_UP]
+        remaining = goal - centre[:, :2]
+        # a little past the goal: the table's friction holds the plate back
+        drive = np.c_[pinch + remaining + _unit(remaining) * DRAG_PAST, z]
+        ori = self.ori[ids]
+        g_drive = 1.0
       sel = phase == PRE
       tgt[sel] = pre[sel]
       sel = phase == IN
@@ -431,7 +436,7 @@ class Articulated:
       slow = (phase == IN) | (phase == DRIVE)
       uncapped = tgt.copy()
       step_len = np.linalg.norm(tgt - hand[ids], axis=-1, keepdims=True)
-      cap = np.where(phase == DRIVE, DRIVE_STEP, SLOW_STEP)[:, None]
+      cap = np.where(phase == DRIVE, DRAG_STEP if step.kind == PUSH else DRIVE_STEP, SLOW_STEP)[:, None]
       capped = hand[ids] + (tgt - hand[ids]) * np.minimum(1.0, cap / np.maximum(step_len, 1e-9))
       tgt = np.where(slow[:, None], capped, tgt)
       # the controller has no integral term: a horizontal hand sags by up to a centimetre; near
@@ -448,8 +453,10 @@ class Articulated:
       done = np.zeros(ids.size, bool)
       done |= (phase == PRE) & (err < 0.01) & (rot_err < 0.05)
       done |= (phase == IN) & (err < 0.006) & (rot_err < 0.1)
-      done |= (phase == GRIP) & ((count >= GRIP_STEPS) | (step.kind in (PUSH_JOINT, PUSH)))  # nothing to grasp
-      done |= (phase == DRIVE) & (self._reached(step, ids) | (count >= DRIVE_LIMIT))
+      done |= (phase == GRIP) & ((count >= GRIP_STEPS) | (step.kind == PUSH_JOINT))  # nothing to grasp
+      empty = np.abs(a["qpos"][ids][:, self._fingers]).sum(-1) < FINGERS_EMPTY  # closed on nothing: it slipped
+      lost = (step.kind != PUSH_JOINT) & empty & (count > GRIP_STEPS)
+      done |= (phase == DRIVE) & (self._reached(step, ids) | (count >= DRIVE_LIMIT) | lost)
       done |= (phase == RELEASE) & (count >= RELEASE_STEPS)
       done |= (phase == BACK) & (err < 0.015)
       done |= (phase == RESTORE) & (err < 0.03) & (rot_err < 0.15)
