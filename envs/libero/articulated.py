@@ -66,6 +66,7 @@ PUSH_MAX_HEIGHT = 0.03  # m: ... and this flat is pushed, not grasped
 INTEGRAL_GAIN, INTEGRAL_NEAR, INTEGRAL_MAX = 0.15, 0.03, 0.03  # per step, m, m
 SLOW_STEP, DRIVE_STEP = 0.015, 0.012  # m # m: the most the hand's goal leads it by while moving in or driving a joint
 GRIP_STEPS, RELEASE_STEPS = 10, 8
+RESTORED = 0.03  # rad: the hand this close to the reset pose's orientation hands over (a pick plans its grasp from it)
 PHASE_LIMIT = 60  # control steps before a phase gives up waiting
 DRIVE_LIMIT = 120
 RETRIES = 2  # a joint step whose atom fails at its end starts over this many times
@@ -459,7 +460,7 @@ class Articulated:
       done |= (phase == DRIVE) & (self._reached(step, ids) | (count >= DRIVE_LIMIT) | lost)
       done |= (phase == RELEASE) & (count >= RELEASE_STEPS)
       done |= (phase == BACK) & (err < 0.015)
-      done |= (phase == RESTORE) & (err < 0.03) & (rot_err < 0.15)
+      done |= (phase == RESTORE) & (err < 0.03) & (rot_err < RESTORED)
       done |= (phase < DONE) & (phase != DRIVE) & (count >= PHASE_LIMIT)
       took = ids[done & (phase == GRIP)]  # the hold on the joint: where the twist or door turn starts from
       self.grip_pos[took] = hand[took]
