@@ -477,7 +477,7 @@ class Articulated:
       nxt = np.where(again, PRE, nxt)
       self.phase[ids], self.count[ids] = nxt, np.where(done, 0, count)
       self.integral[ids[done]] = 0.0
-      finished = ids[(nxt == DONE) & (phase != DONE)]
+      finished = ids[(nxt == DONE) & ((phase != DONE) | new)]  # (an atom that held on entry: at once)
       if not finished.size:
         continue
       if k + 1 < len(ex.tasks):  # the plan's next step, from its first phase
