@@ -45,6 +45,7 @@ FINGER_DEADBAND = 0.004  # m
 HINGE_LEAD = 0.2  # rad: a pushed door's goal runs this far ahead of it
 TWIST_LEAD, TWIST_PAST = 0.4, 0.15  # rad: a twisted knob's goal runs this far ahead, toward this far past its goal
 PRE_BACK = 0.05  # m in front of a handle (or behind a pushed face) before moving in
+PUSH_TILT = 0.6  # rad: a drawer is pushed shut with the fingers tilted this far toward the push
 PUSH_BACK = 0.02  # m: the pusher waits this far off the face before pushing
 BACK_OFF = 0.08  # m the hand backs away after letting go
 SAFE_UP = 0.08  # m above the moving part's top while moving to or from it
@@ -65,6 +66,7 @@ PUSH_MIN_WIDTH = 0.07  # m: an object wider than the open fingers on both sides 
 PUSH_MAX_HEIGHT = 0.03  # m: ... and this flat is pushed, not grasped
 INTEGRAL_GAIN, INTEGRAL_NEAR, INTEGRAL_MAX = 0.15, 0.03, 0.03  # per step, m, m
 SLOW_STEP, DRIVE_STEP = 0.015, 0.012  # m # m: the most the hand's goal leads it by while moving in or driving a joint
+STALLED = 1e-3  # m/s or rad/s: a joint this slow has stopped
 GRIP_STEPS, RELEASE_STEPS = 10, 8
 RESTORED = 0.03  # rad: the hand this close to the reset pose's orientation hands over (a pick plans its grasp from it)
 PHASE_LIMIT = 60  # control steps before a phase gives up waiting
@@ -168,7 +170,8 @@ def _joint_kind(scene, model, atom: predicates.Atom) -> str:
   if atom.predicate in ("turnon", "turnoff"):
     return TWIST
   jid = _joint_of(model, atom)
-  return PULL if int(model.jnt_type[jid]) == int(mujoco.mjtJoint.mjJNT_SLIDE) else PUSH_JOINT
+  slide = int(model.jnt_type[jid]) == int(mujoco.mjtJoint.mjJNT_SLIDE)
+  return PULL if slide and atom.predicate == "open" else PUSH_JOINT  # a drawer is shut by pushing its handle
 
 
 def _joint_of(model, atom: predicates.Atom) -> int:
@@ -205,7 +208,8 @@ def make_step(batch, kind: str, atom: predicates.Atom) -> Step:
   goal_q = thr + sign * min(JOINT_MARGIN * rest, JOINT_MARGIN_MAX)
   axis = model.jnt_axis[jid]
   geoms = _colliding(model, body)
-  if kind == PULL:  # the handle: the geom furthest along the opening direction (the body frame's)
+  slide = int(model.jnt_type[jid]) == int(mujoco.mjtJoint.mjJNT_SLIDE)
+  if kind == PULL or (kind == PUSH_JOINT and slide):  # the handle: the geom furthest along the opening direction
     opening = sign * axis if atom.predicate == "open" else -sign * axis
     reach = [_geom_box(model, g)[0] @ opening + _geom_box(model, g)[1] @ np.abs(opening) for g in geoms]
     return Step(kind, atom, joint=jid, body=body, sign=sign, goal_q=goal_q, part=geoms[int(np.argmax(reach))])
@@ -236,12 +240,18 @@ def _yaw(angle: np.ndarray) -> np.ndarray:
   return _rodrigues(np.tile([0.0, 0.0, 1.0], (len(angle), 1)), angle)
 
 
-def _yaw_to(down: np.ndarray, direction: np.ndarray) -> np.ndarray:
-  """[n] the least turn about the vertical that puts the downward hand's closing axis (its site x)
-  along ±`direction` [n, 2] (the fingers are symmetric)."""
+def _yaw_to(down: np.ndarray, direction: np.ndarray, hand: np.ndarray | None = None) -> np.ndarray:
+  """[n] a turn about the vertical that puts the downward hand's closing axis (its site x) along
+  ±`direction` [n, 2] (the fingers are symmetric): of the two, the one nearer the hand's
+  orientation `hand` [n, 3, 3] (else the least)."""
   x = down[:, :2, 0]
   angle = np.arctan2(x[:, 0] * direction[:, 1] - x[:, 1] * direction[:, 0], (x * direction).sum(-1))
-  return (angle + np.pi / 2) % np.pi - np.pi / 2
+  angle = (angle + np.pi / 2) % np.pi - np.pi / 2
+  if hand is None:
+    return angle
+  other = angle - np.sign(angle + 1e-12) * np.pi
+  err = [np.linalg.norm(_rotation_error(_yaw(a) @ down, hand), axis=-1) for a in (angle, other)]
+  return np.where(err[1] < err[0], other, angle)
 
 
 def _unit(v: np.ndarray) -> np.ndarray:
@@ -286,7 +296,9 @@ class Articulated:
       d = self.batch.data["site_xpos"][ids, step.site, :2] - self.batch.data["xpos"][ids, step.atom.body, :2]
       return np.linalg.norm(d, axis=-1) < PUSH_DONE
     q = self.batch.data["qpos"][ids, self.batch.model.jnt_qposadr[step.joint]]
-    return step.sign * (q - step.goal_q) >= 0
+    dq = self.batch.data["qvel"][ids, self.batch.model.jnt_dofadr[step.joint]]
+    # or past the atom's threshold and stopped there (a drawer shut against its cabinet short of its limit)
+    return (step.sign * (q - step.goal_q) >= 0) | (self._holds(step, ids) & (np.abs(dq) < STALLED))
 
   def _enter(self, k: int, step: Step, ids: np.ndarray, hand_mat: np.ndarray) -> None:
     a, model = self.batch.data, self.batch.model
@@ -305,18 +317,28 @@ class Articulated:
         best = (r, score) if best is None else (np.where((score > best[1])[:, None, None], r, best[0]),
                                                 np.maximum(score, best[1]))
       self.ori[ids], self.away[ids] = best[0], opening
+    elif step.kind == PUSH_JOINT and self._slide(step):  # the downward hand, its palm's long side along the handle
+      opening = self._opening(step, ids)
+      level = _yaw(_yaw_to(down, np.stack([-opening[:, 1], opening[:, 0]], -1), hand_mat)) @ down
+      # the fingers tilted toward the push: the forearm stays back, clear of the cabinet's top
+      tilt_axis = _unit(np.cross(np.tile([0.0, 0.0, -1.0], (len(ids), 1)), -opening))
+      self.ori[ids] = _rodrigues(tilt_axis, np.full(len(ids), PUSH_TILT)) @ level
+      self.away[ids] = opening
     elif step.kind == PUSH_JOINT:
       radial = self._door_frame(step, ids)[1]
-      self.ori[ids] = _yaw(_yaw_to(down, radial[:, :2])) @ down
+      self.ori[ids] = _yaw(_yaw_to(down, radial[:, :2], hand_mat)) @ down
       self.away[ids] = -self._door_frame(step, ids)[2]
     elif step.kind == TWIST:
       across = np.einsum("bij,j->bi", a["xmat"][ids, step.body].reshape(-1, 3, 3), step.across)
-      self.ori[ids] = _yaw(_yaw_to(down, across[:, :2])) @ down
+      self.ori[ids] = _yaw(_yaw_to(down, across[:, :2], hand_mat)) @ down
       self.away[ids] = [0.0, 0.0, 1.0]
     else:
       u = _unit(a["site_xpos"][ids, step.site, :2] - a["xpos"][ids, step.atom.body, :2])
-      self.ori[ids] = _yaw(_yaw_to(down, u)) @ down  # the fingers close across the rim (radially)
+      self.ori[ids] = _yaw(_yaw_to(down, u, hand_mat)) @ down  # the fingers close across the rim (radially)
       self.away[ids] = [0.0, 0.0, 1.0]
+
+  def _slide(self, step: Step) -> bool:
+    return int(self.batch.model.jnt_type[step.joint]) == int(mujoco.mjtJoint.mjJNT_SLIDE)
 
   def _opening(self, step: Step, ids: np.ndarray) -> np.ndarray:
     """[n, 3] the world direction a slide's handle moves as its joint opens."""
@@ -378,6 +400,18 @@ class Articulated:
         g_drive = 1.0
         sel = phase <= IN  # the fingers half open: fully open they reach the drawers above and below
         g[sel] = self._preset(ids[sel], HANDLE_OPENING)
+      elif step.kind == PUSH_JOINT and self._slide(step):  # the fingertips against the handle's front, pushing it in
+        centre_b, half_b = _geom_box(model, step.part)
+        mat = a["xmat"][ids, step.body].reshape(-1, 3, 3)
+        handle = a["xpos"][ids, step.body] + np.einsum("bij,j->bi", mat, centre_b)
+        depth = (np.abs(away) * np.einsum("bij,j->bi", np.abs(mat), half_b)).sum(-1, keepdims=True)
+        face = handle + away * (depth + FINGER_HALF) - self.ori[ids][:, :, 2] * FINGERTIP  # the site, tips on the face
+        contact = face + away * PUSH_BACK
+        pre = contact + np.array([0.0, 0.0, SAFE_UP])
+        q = a["qpos"][ids, model.jnt_qposadr[step.joint]]
+        lead = np.clip(step.goal_q + step.sign * SLIDE_PAST - q, -SLIDE_LEAD, SLIDE_LEAD)
+        drive = face + a["xaxis"][ids, step.joint] * lead[:, None]
+        g_drive = 1.0
       elif step.kind == PUSH_JOINT:
         contact = self._door_frame(step, ids)[0] - self._door_frame(step, ids)[2] * (FINGER_HALF + PUSH_BACK)
         pre = contact + away * PRE_BACK
