@@ -363,10 +363,9 @@ class Articulated:
     rel = centre - anchor
     radial = _unit(rel - (rel * axis).sum(-1, keepdims=True) * axis)
     closing = step.sign * np.cross(axis, radial)
-    half = np.einsum("bij,j->bi", np.abs(mat), half_b)  # world half extents of the panel
-    reach = (np.abs(radial) * half).sum(-1)
-    depth = (np.abs(closing) * half).sum(-1)
-    top = centre[:, 2] + half[:, 2]
+    extent = lambda v: np.abs(np.einsum("bji,bj->bi", mat, v)) @ half_b  # the panel's half extent along v  # noqa: E731
+    reach, depth = extent(radial), extent(closing)
+    top = centre[:, 2] + extent(np.tile([0.0, 0.0, 1.0], (len(ids), 1)))
     r = np.linalg.norm(rel - (rel * axis).sum(-1, keepdims=True) * axis, axis=-1)
     point = centre + radial * (PUSH_RADIUS * (r + reach) - r)[:, None] - closing * depth[:, None]
     point[:, 2] = top + PALM_CLEAR - PALM_ABOVE
@@ -404,7 +403,7 @@ class Articulated:
         centre_b, half_b = _geom_box(model, step.part)
         mat = a["xmat"][ids, step.body].reshape(-1, 3, 3)
         handle = a["xpos"][ids, step.body] + np.einsum("bij,j->bi", mat, centre_b)
-        depth = (np.abs(away) * np.einsum("bij,j->bi", np.abs(mat), half_b)).sum(-1, keepdims=True)
+        depth = (np.abs(np.einsum("bji,bj->bi", mat, away)) @ half_b)[:, None]  # the handle's half depth
         face = handle + away * (depth + FINGER_HALF) - self.ori[ids][:, :, 2] * FINGERTIP  # the site, tips on the face
         contact = face + away * PUSH_BACK
         pre = contact + np.array([0.0, 0.0, SAFE_UP])
