@@ -32,7 +32,7 @@ import numpy as np
 
 from envs.libero import predicates
 
-PLACE, PULL, PUSH_JOINT, TWIST, PUSH = "place", "pull", "push_joint", "twist", "push"
+PLACE, PULL, PUSH_JOINT, TWIST, DRAG = "place", "pull", "push_joint", "twist", "drag"
 PRE, IN, GRIP, DRIVE, RELEASE, BACK, RESTORE, DONE = range(8)
 PHASES = ("pre", "in", "grip", "drive", "release", "back", "restore", "done")
 # Joint goals: drive past the predicate's threshold by this share of the rest of the joint's range
@@ -62,10 +62,11 @@ DRAG_PAST, DRAG_STEP = 0.015, 0.02  # m
 FINGERS_EMPTY = 0.003  # m: the fingers' joints this close to shut hold nothing
 PUSH_MARGIN = 0.01  # m: a pushed object inside its region by this much counts as there
 PUSH_DONE = 0.025  # m: a push stops with the object's centre this close to the region's
-PUSH_MIN_WIDTH = 0.07  # m: an object wider than the open fingers on both sides ...
-PUSH_MAX_HEIGHT = 0.03  # m: ... and this flat is pushed, not grasped
-INTEGRAL_GAIN, INTEGRAL_NEAR, INTEGRAL_MAX = 0.15, 0.03, 0.03  # per step, m, m
-SLOW_STEP, DRIVE_STEP = 0.015, 0.012  # m # m: the most the hand's goal leads it by while moving in or driving a joint
+DRAG_MIN_WIDTH = 0.07  # m: an object wider than the open fingers on both sides ...
+DRAG_MAX_HEIGHT = 0.03  # m: ... and this flat is dragged by its rim, not grasped across
+INTEGRAL_GAIN, INTEGRAL_NEAR, INTEGRAL_MAX = 0.15, 0.03, 0.04  # per step, m, m
+SLOW_STEP, DRIVE_STEP = 0.015, 0.012  # m: the most the hand's goal leads it by while moving in or driving a joint
+DRIVE_STUCK = 0.01  # m/s: a pulled drawer this slow is stuck
 STALLED = 1e-3  # m/s or rad/s: a joint this slow has stopped
 GRIP_STEPS, RELEASE_STEPS = 10, 8
 RESTORED = 0.03  # rad: the hand this close to the reset pose's orientation hands over (a pick plans its grasp from it)
@@ -86,9 +87,8 @@ class Step:
   part: int = -1  # pull: the handle geom; push_joint: the door panel geom
   grip_local: np.ndarray | None = None  # twist: the grip point in the knob's body frame
   across: np.ndarray | None = None  # twist: the knob's thin horizontal side, body frame (unit)
-  top: float = 0.0  # twist: the knob's top in its body frame
-  box: np.ndarray | None = None  # push: the object's box in its body frame
-  site: int = -1  # push: the region's site
+  box: np.ndarray | None = None  # drag: the object's box in its body frame
+  site: int = -1  # drag: the region's site
 
 
 def _joint_atom(scene, model, predicate: str, name: str) -> predicates.Atom:
@@ -119,18 +119,13 @@ def _container(scene, atom: predicates.Atom) -> str | None:
   return atom.args[1] if region["joints"] else parent
 
 
-def _pushed(model, atom: predicates.Atom) -> bool:
-  """On(region) of an object wider than the open fingers both ways and flat: pushed, not grasped."""
+def _dragged(model, atom: predicates.Atom) -> bool:
+  """On(region) of an object wider than the open fingers both ways and flat: dragged, not grasped."""
   if atom.test != "on_region":
     return False
   from envs.libero.expert import _box
   extent = np.diff(_box(model, atom.body), axis=0)[0]
-  return bool(extent[:2].min() > PUSH_MIN_WIDTH and extent[2] < PUSH_MAX_HEIGHT)
-
-
-def _owner_of(scene, name: str) -> str:
-  regions = scene.meta["regions"]
-  return regions[name]["parent"] if name in regions else name
+  return bool(extent[:2].min() > DRAG_MIN_WIDTH and extent[2] < DRAG_MAX_HEIGHT)
 
 
 def plan(batch) -> list[tuple[str, predicates.Atom]]:
@@ -153,15 +148,14 @@ def plan(batch) -> list[tuple[str, predicates.Atom]]:
       other.append(atom)
   for atom in places:
     name = _container(scene, atom)
-    if name is None or any(_owner_of(scene, a.args[0]) == _owner_of(scene, name) and a.args[0] in (name, _owner_of(scene, name))
-                           for a in opens):
+    if name is None or any(a.args[0] == name for a in opens):
       continue
     need = _joint_atom(scene, model, "open", name)
     shut = ~predicates._joints(need, predicates.GoalInputs(None, None, None, None, qpos, None))
     if shut.any():
       opens.append(need)
   steps = [(_joint_kind(scene, model, a), a) for a in switches + opens]
-  steps += [(PUSH if _pushed(model, a) else PLACE, a) for a in places]
+  steps += [(DRAG if _dragged(model, a) else PLACE, a) for a in places]
   steps += [(_joint_kind(scene, model, a), a) for a in closes]
   return steps + [(PLACE, a) for a in other]  # the pick-and-place expert names what it cannot do
 
@@ -196,7 +190,7 @@ def _colliding(model, body: int) -> list[int]:
 def make_step(batch, kind: str, atom: predicates.Atom) -> Step:
   """Resolve a planned step to ids and geometry of the model (task constants)."""
   model = batch.model
-  if kind == PUSH:
+  if kind == DRAG:
     from envs.libero.expert import _box
     return Step(kind, atom, box=_box(model, atom.body), site=atom.site)
   jid = _joint_of(model, atom)
@@ -224,7 +218,7 @@ def make_step(batch, kind: str, atom: predicates.Atom) -> Step:
   across = np.eye(3)[int(np.argmin((hi_r - lo_r)[:2]))]
   grip = (lo_r + hi_r) / 2
   grip[2] = hi_r[2] - KNOB_GRIP_DEPTH
-  return Step(kind, atom, joint=jid, body=body, sign=sign, goal_q=goal_q, grip_local=grip, across=across, top=hi_r[2])
+  return Step(kind, atom, joint=jid, body=body, sign=sign, goal_q=goal_q, grip_local=grip, across=across)
 
 
 def _rodrigues(axis: np.ndarray, angle: np.ndarray) -> np.ndarray:
@@ -279,7 +273,7 @@ class Articulated:
 
   def _holds(self, step: Step, ids: np.ndarray) -> np.ndarray:
     a = self.batch.data
-    if step.kind == PUSH:  # in the region's middle half (the atom's own test also reads heights)
+    if step.kind == DRAG:  # in the region's middle half (the atom's own test also reads heights)
       d = a["site_xpos"][ids, step.site, :2] - a["xpos"][ids, step.atom.body, :2]
       return np.linalg.norm(d, axis=-1) < min(step.atom.size[:2]) - PUSH_MARGIN
     return predicates._joints(step.atom, predicates.GoalInputs(None, None, None, None, a["qpos"][ids], None))
@@ -292,7 +286,7 @@ class Articulated:
 
   def _reached(self, step: Step, ids: np.ndarray) -> np.ndarray:
     """The joint is at its goal (past the threshold by the step's margin)."""
-    if step.kind == PUSH:
+    if step.kind == DRAG:
       d = self.batch.data["site_xpos"][ids, step.site, :2] - self.batch.data["xpos"][ids, step.atom.body, :2]
       return np.linalg.norm(d, axis=-1) < PUSH_DONE
     q = self.batch.data["qpos"][ids, self.batch.model.jnt_qposadr[step.joint]]
@@ -433,7 +427,7 @@ class Articulated:
         sel = phase == DRIVE
         ori[sel] = rot[sel] @ self.ori[ids[sel]]
         g_drive = 1.0
-      else:  # PUSH
+      else:  # DRAG
         from envs.libero.expert import _world_box
         lo, hi = _world_box(step.box, a["xpos"][ids, step.atom.body], a["xmat"][ids, step.atom.body].reshape(-1, 3, 3))
         centre = (lo + hi) / 2
@@ -470,13 +464,17 @@ class Articulated:
       slow = (phase == IN) | (phase == DRIVE)
       uncapped = tgt.copy()
       step_len = np.linalg.norm(tgt - hand[ids], axis=-1, keepdims=True)
-      cap = np.where(phase == DRIVE, DRAG_STEP if step.kind == PUSH else DRIVE_STEP, SLOW_STEP)[:, None]
+      cap = np.where(phase == DRIVE, DRAG_STEP if step.kind == DRAG else DRIVE_STEP, SLOW_STEP)[:, None]
       capped = hand[ids] + (tgt - hand[ids]) * np.minimum(1.0, cap / np.maximum(step_len, 1e-9))
       tgt = np.where(slow[:, None], capped, tgt)
       # the controller has no integral term: a horizontal hand sags by up to a centimetre; near
       # its goal the hand's goal is moved by the error it keeps (integrated, bounded; not while a
       # drive's goal leads the hand on purpose)
-      near = (np.linalg.norm(tgt - hand[ids], axis=-1) < INTEGRAL_NEAR) & (phase != DRIVE) & (step.kind == PULL)
+      near = np.linalg.norm(tgt - hand[ids], axis=-1) < INTEGRAL_NEAR
+      if step.joint >= 0:  # a drive integrates only while its joint is stuck (the arm short of force)
+        stuck = np.abs(a["qvel"][ids, model.jnt_dofadr[step.joint]]) < DRIVE_STUCK
+        near &= (phase != DRIVE) | stuck
+      near &= step.kind == PULL
       self.integral[ids] = np.where(near[:, None], np.clip(self.integral[ids] + INTEGRAL_GAIN * (tgt - hand[ids]),
                                                            -INTEGRAL_MAX, INTEGRAL_MAX), self.integral[ids])
       tgt = tgt + self.integral[ids]
