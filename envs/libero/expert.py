@@ -8,8 +8,9 @@ horizontal side. Grasp and release heights come from the object's box (its colli
 its body frame, a task constant) at its current pose. Actions are LIBERO's: the position error
 over the controller's 5 cm scale and the orientation error over its 0.5 rad, clipped to [-1, 1].
 
-Goals with Open, Close, TurnOn or TurnOff atoms (drawers, the microwave, the stove's knob) are
-not scripted here yet: `Expert` names the atom it cannot do.
+Open, Close, TurnOn and TurnOff atoms (drawers, the microwave's door, the stove's knob) and the
+dragged plate are `envs.libero.articulated`'s steps; the order of all steps is its `plan`.
+`Expert` names an atom neither scripts.
 """
 
 from __future__ import annotations
