@@ -5,13 +5,14 @@ the hand's way), then every drawer or door a placement needs open (a prerequisit
 not list, added when some env starts with it shut) and the goal's own Open atoms, then the
 placements, then the Close atoms (a container is shut only once its contents are in). Which
 steps are ours is read from the atoms and the scene: joint atoms, and On(region) of an object too
-wide and flat to grasp (a plate), which is pushed. Placements stay with `expert.Expert`.
+wide and flat to grasp across (a plate), which is dragged. Placements stay with `expert.Expert`.
 
 `Articulated` drives the envs whose current step is one of ours, batched over those envs, from
 privileged state (the joints' axes, anchors and positions; the moving bodies' geoms):
-- a slide joint (a drawer) is grasped by its handle, the geom that sticks out furthest along
-  the opening direction, with the hand turned to point into the drawer and the fingers closing
-  across the bar vertically, then driven along the joint's axis (open or closed);
+- a drawer (a slide joint) to open is grasped by its handle, the geom that sticks out furthest
+  along the opening direction, with the hand turned to point into the drawer and the fingers
+  closing across the bar vertically, then pulled along the joint's axis; a drawer to shut is
+  pushed by its handle, the fingers tilted toward the push (the forearm clear of the cabinet);
 - a hinge without a handle we grasp (a door) is pushed on its panel's outer face near the top,
   the fingertips leading the door's face along its arc and the hand turning with the door;
 - a switch (the stove's knob) is grasped across its raised part and twisted about its axis;
