@@ -8,8 +8,9 @@ horizontal side. Grasp and release heights come from the object's box (its colli
 its body frame, a task constant) at its current pose. Actions are LIBERO's: the position error
 over the controller's 5 cm scale and the orientation error over its 0.5 rad, clipped to [-1, 1].
 
-Goals with Open, Close, TurnOn or TurnOff atoms (drawers, the microwave, the stove's knob) are
-not scripted here yet: `Expert` names the atom it cannot do.
+Open, Close, TurnOn and TurnOff atoms (drawers, the microwave's door, the stove's knob) and the
+dragged plate are `envs.libero.articulated`'s steps; the order of all steps is its `plan`.
+`Expert` names an atom neither scripts.
 """
 
 from __future__ import annotations
@@ -19,6 +20,7 @@ import dataclasses
 import mujoco
 import numpy as np
 
+from envs.libero import articulated
 from envs.libero import engine as engines
 from envs.libero import predicates
 
@@ -165,7 +167,12 @@ class Expert:
     self.batch = batch
     model, meta = batch.model, batch.scene.meta
     self.tasks = []
-    for atom in batch.goal.atoms:
+    steps = {}  # plan index -> articulated.Step: done by self.articulated
+    for kind, atom in articulated.plan(batch):
+      if kind != articulated.PLACE:
+        steps[len(self.tasks)] = articulated.make_step(batch, kind, atom)
+        self.tasks.append(steps[len(self.tasks)])
+        continue
       if atom.test not in ("in_region", "on_region", "on_object"):
         raise NotImplementedError(f"{meta['task']}: no scripted expert for {atom.predicate}{atom.args} yet "
                                   "(envs/libero/expert.py scripts In and On of a movable object)")
@@ -194,6 +201,7 @@ class Expert:
     self.fresh = np.ones(n, bool)
     self._finger_q = [j["qposadr"] for j in meta["robot"]["gripper_joints"]]
     self.gap = np.zeros(n)  # the fingers' opening at the previous step
+    self.articulated = articulated.Articulated(self, steps)
 
   # ---------------------------------------------------------------- what the expert reads
 
@@ -331,7 +339,7 @@ class Expert:
     grip = np.full(n, -1.0)
     for k, t in enumerate(self.tasks):
       ids = np.flatnonzero(self.task == k)
-      if not ids.size:
+      if not ids.size or not isinstance(t, Task):  # articulated steps: self.articulated below
         continue
       lo, hi = self._object(t, ids)
       centre = (lo + hi) / 2
@@ -415,6 +423,7 @@ class Expert:
       self.phase[ids] = nxt
       self.count[ids] = np.where(done, 0, count)
       self.fresh[ids] = done
+    self.articulated.act(hand, hand_mat, target, grip)
     pos = np.clip((target - hand) / 0.05, -1, 1)
     rot = np.clip(_rotation_error(self.goal_ori, hand_mat) / 0.5, -1, 1)
     return np.concatenate([pos, rot, grip[:, None]], axis=1)
