@@ -21,7 +21,7 @@ export MUJOCO_GL ?= egl
 # contention doubled the quick preset's step.) docs/measurements/speed.md.
 export GLIBC_TUNABLES ?= glibc.malloc.hugetlb=1
 
-.PHONY: install test test-fast test-libero quickstart toy-skills paper-cpu paper-cpu-image loss-ablation k-sweep plug-readings notebooks experts demos pretrain fewshot eval bench-envs bench-loader bench-train bench-eval bench-eval-scale bench-libero bench soak scenes clean
+.PHONY: install test test-fast test-libero quickstart toy-skills paper-cpu paper-cpu-image loss-ablation k-sweep plug-readings libero-cpu libero-quick notebooks experts demos pretrain fewshot eval bench-envs bench-loader bench-train bench-eval bench-eval-scale bench-libero bench soak scenes clean
 
 install: $(VENV)/.installed
 
@@ -111,6 +111,17 @@ k-sweep: install
 plug-readings: install
 	$(PY) -m experiments.pipeline --config plug_readings --out $(OUT)/plug_readings $(SET)
 	$(PY) -m experiments.routing_curves $(OUT)/plug_readings/plug_*/runs/*_skillplug_cpu_seed? --out $(OUT)/plug_readings/routing_curves
+
+# Issue 42: the paper's LIBERO protocol at CPU scale (experiments/configs/libero_cpu.py): multi-task
+# per suite, and LIBERO-10 pretraining then 5-shot per suite, with a capacity-matched ACT arm.
+# Resumable; VARIANTS=long (or a comma list) runs only those arms. libero-quick: the same protocol
+# at smoke size, minutes (experiments/configs/libero_quick.py).
+VARIANTS ?=
+libero-cpu: install
+	$(PY) -m experiments.pipeline --config libero_cpu --out $(OUT)/libero_cpu $(if $(VARIANTS),--variants $(VARIANTS)) $(SET)
+
+libero-quick: install
+	$(PY) -m experiments.pipeline --config libero_quick --out $(OUT)/libero_quick $(SET)
 
 # The notebooks (notebooks/), executed in place on docs/results/paper_cpu.
 notebooks: install

@@ -48,7 +48,7 @@ from experiments import publish
 from skillplug_jax import experiment, fewshot
 from skillplug_jax.atomic_json import write_json_atomic, write_text_atomic
 from skillplug_jax.startup import cpu_name
-from skillplug_jax.evaluate import groups, protocol, toy_rollout
+from skillplug_jax.evaluate import groups, toy_rollout, trials
 from skillplug_jax.evaluate.routing import renamed
 from skillplug_jax.evaluate.policy_controller import load_controller
 from skillplug_jax.experiment import Experiment, FewShot, RunRecord, Variant
@@ -102,10 +102,9 @@ def evaluated(run: Path, tasks, exp: Experiment, name: str, source: Path, extra:
   results = []
   for task in tasks:
     t0 = time.time()
-    routing = (path.with_name(f"{path.stem}_{task}.routing.npz") if cfg.model.is_skillplug else None)
-    r = protocol.evaluate_task(task, controller, exp.trials, exp.eval_seed, exp.eval_batch,
-                               render=cfg.model.use_images, image_size=cfg.model.image_size,
-                               routing_file=routing, backend=exp.train.backend)
+    routing = (path.with_name(f"{path.stem}_{task.replace(':', '_')}.routing.npz") if cfg.model.is_skillplug else None)
+    r = trials.evaluate_task(task, controller, cfg, exp.trials, exp.eval_seed, exp.eval_batch,
+                             backend=exp.train.backend, routing_file=routing)
     r.update(run=str(run), **row, trained_on=cfg.backend, wall_s=round(time.time() - t0, 1),
              routing_file=str(routing) if routing else None, **(extra or {}))
     results.append(r)
@@ -161,11 +160,11 @@ def job(exp: Experiment, policy: str, seed: int, out: Path, data_dir: Path | Non
     source, recorded = run_files.read_config(run), experiment.read_record(run)
     # the protocol the run recorded (this experiment's, its overrides included), or this arm's own
     plan = exp.fewshot if adapts else recorded.fewshot
-    for task in tasks_of(plan.taskset):
-      few = fewshot.fewshot_config(source, run, task, plan, variant if adapts else "")
+    for unit, unit_tasks in fewshot.units(plan):  # each task, or each suite (`FewShot.per`)
+      few = fewshot.fewshot_config(source, run, unit, plan, variant if adapts else "")
       few_run = train(few, progress=False, record=recorded)
-      steps = few.num_steps(plan.demos)  # the dataset holds `demos` episodes of the task
-      results = evaluate(few_run, [task], exp, task, run, extra=dict(source=str(run)))
+      steps = few.num_steps(plan.demos * len(unit_tasks))  # the dataset holds `demos` episodes per task
+      results = evaluate(few_run, unit_tasks, exp, unit, run, extra=dict(source=str(run)))
       adapted += [dict(r, trainable=list(few.trainable), steps=steps) for r in results]
     if protocol_in_rows:
       fields = protocol_fields(plan, policy)
@@ -263,7 +262,7 @@ def make_datasets(exp: Experiment, out: Path) -> float:
       continue
     loop.load_data(source)
     if arm.run_fewshot:
-      first_unseen = tasks_of(arm.fewshot.taskset)[0]  # one dataset holds every unseen task
+      first_unseen = fewshot.units(arm.fewshot)[0][0]  # one dataset holds every unseen task
       loop.load_data(fewshot.fewshot_config(source, source.run_dir, first_unseen,
                                             dataclasses.replace(arm.fewshot, steps=1)))
   return round(time.time() - t0, 1)

@@ -233,7 +233,8 @@ def cmd_fewshot(args) -> int:
   out = fewshot.adapt_and_evaluate(runs, args.taskset, args.demos, args.trials, args.seed, args.batch,
                                    steps=args.steps, backend=args.backend,
                                    marginal_terms=False if args.no_marginal_terms else None,
-                                   trainable=args.trainable.split(",") if args.trainable else None)
+                                   trainable=args.trainable.split(",") if args.trainable else None,
+                                   per=args.per)
   print(report.write(out, f"few-shot, {args.demos} demos per task, {args.trials} paired trials per task",
                      args.out))
   return 0
@@ -341,6 +342,9 @@ def build_parser() -> argparse.ArgumentParser:
                  help="parameter groups to fine-tune, comma-separated, for either policy (default: those the "
                       "source run recorded), e.g. action_head,router,interactor (the groups: docs/training.md); "
                       "other than the recorded ones, fine-tunes go to RUN_fewshot_train-<groups>/")
+  f.add_argument("--per", choices=("task", "taskset"), default=None,
+                 help="one fine-tune per task of the taskset, or per comma-separated part of it (a LIBERO suite: "
+                      "the paper's LIBERO protocol); default: what the source run recorded")
   f.add_argument("--trials", type=int, default=50)
   f.add_argument("--seed", type=int, default=1000)
   f.add_argument("--batch", type=int, default=50)

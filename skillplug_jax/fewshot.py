@@ -19,6 +19,7 @@ from typing import Sequence
 import envs
 from skillplug_jax import experiment
 from skillplug_jax.evaluate import groups, protocol, tables
+from skillplug_jax.evaluate import trials as trials_of
 from skillplug_jax.evaluate.policy_controller import load_controller
 from skillplug_jax.experiment import FewShot, Trainable
 from skillplug_jax.train import config as train_config
@@ -26,8 +27,18 @@ from skillplug_jax.train import loop, run_files
 from skillplug_jax.train.config import TrainConfig
 
 
+def units(plan: FewShot) -> list[tuple[str, tuple[str, ...]]]:
+  """(what one fine-tune trains on, the tasks it is evaluated on) for each fine-tune of `plan`:
+  each task of its taskset (`per="task"`), or each comma-separated part of it, all of that part's
+  tasks at once (`per="taskset"`: a LIBERO suite)."""
+  if plan.per == "taskset":
+    return [(part, tuple(envs.taskset(part))) for part in plan.taskset.split(",")]
+  return [(t, (t,)) for part in plan.taskset.split(",") for t in envs.taskset(part)]
+
+
 def fewshot_config(source: TrainConfig, source_dir: Path, task: str, plan: FewShot, variant: str = "") -> TrainConfig:
-  """The fine-tune of `source` on `task` (one of `plan.taskset`) by the few-shot protocol `plan`:
+  """The fine-tune of `source` on `task` (a unit of `plan`: one of its tasks, or one of its parts
+  with `per="taskset"`) by the few-shot protocol `plan`:
   the one the source run recorded (`experiment.read_record`), or one the caller chose. `variant`
   names a departure from the recorded protocol: its fine-tunes go to `RUN_fewshot_<variant>/`.
   `plan.train_overrides` (TrainConfig `key=value`) are applied last, to the fine-tune alone."""
@@ -49,19 +60,19 @@ def adapt_and_evaluate(source_runs: Sequence[str | Path], taskset: str = "discov
                        demos: int = 10, trials: int = 50, seed: int = protocol.EVAL_SEED,
                        batch: int = 50, steps: int | None = None, progress: bool = True,
                        backend: str = "auto", marginal_terms: bool | None = None,
-                       trainable: Sequence[str] | None = None) -> dict:
+                       trainable: Sequence[str] | None = None, per: str | None = None) -> dict:
   """Fine-tune every source run on every task of `taskset`, evaluate, tabulate.
 
   Rows are the source runs' training configurations (`groups`): the
   few-shot settings are the same for every row of one call, and the seeds
   of one source configuration are one row. `steps`, `marginal_terms` and
-  `trainable` (the parameter groups fine-tuned, for either policy): None
+  `trainable` (the parameter groups fine-tuned, for either policy) and `per` (`FewShot.per`): None
   keeps what the source run recorded (`FewShot`). Groups other than the
   recorded ones fine-tune into `RUN_fewshot_train-<groups>/`. The API's edge:
   a `backend` of "auto" (evaluation's physics) is resolved here, once.
   """
   backend = envs.resolve_backend(backend)
-  tasks = envs.taskset(taskset)
+  tasks = [t for part in taskset.split(",") for t in envs.taskset(part)]
   results = []
   for src in source_runs:
     src = Path(src)
@@ -69,25 +80,26 @@ def adapt_and_evaluate(source_runs: Sequence[str | Path], taskset: str = "discov
     label = groups.policy_label(source)
     chosen = dataclasses.replace(
         record.fewshot, taskset=taskset, demos=demos, steps=record.fewshot.steps if steps is None else steps,
-        marginal_terms=record.fewshot.marginal_terms if marginal_terms is None else marginal_terms)
+        marginal_terms=record.fewshot.marginal_terms if marginal_terms is None else marginal_terms,
+        per=record.fewshot.per if per is None else per)
     variant = ""
     if trainable is not None and tuple(sorted(trainable)) != chosen.trainable.of(source.model.policy):
       chosen = dataclasses.replace(chosen, trainable=Trainable(act=tuple(trainable), skillplug=tuple(trainable)))
       variant = "train-" + "+".join(sorted(trainable))
-    for task in tasks:
-      cfg = fewshot_config(source, src, task, chosen, variant)
+    for unit, unit_tasks in units(chosen):
+      cfg = fewshot_config(source, src, unit, chosen, variant)
       if progress:
-        print(f"few-shot {label} (seed {source.seed}) on {task}: training {sorted(cfg.trainable)}",
+        print(f"few-shot {label} (seed {source.seed}) on {unit}: training {sorted(cfg.trainable)}",
               file=sys.stderr)
       run = loop.train(cfg, progress=progress, record=record)
       controller, _ = load_controller(run)
       protocol.warn_if_other_renderer(run, cfg, backend)
-      r = protocol.evaluate_task(task, controller, trials, seed, batch, render=cfg.model.use_images,
-                                 image_size=cfg.model.image_size, backend=backend)
-      r.update(run=str(run), source=str(src), **groups.row_fields(source, record),
-               trainable=list(cfg.trainable), steps=cfg.max_steps, trained_on=source.backend,
-               fewshot_loss=dict(usage=cfg.loss.usage))
-      results.append(r)
+      for task in unit_tasks:
+        r = trials_of.evaluate_task(task, controller, cfg, trials, seed, batch, backend=backend)
+        r.update(run=str(run), source=str(src), **groups.row_fields(source, record),
+                 trainable=list(cfg.trainable), steps=cfg.num_steps(demos * len(unit_tasks)),
+                 trained_on=source.backend, fewshot_loss=dict(usage=cfg.loss.usage))
+        results.append(r)
   return dict(taskset=taskset, demos=demos, trials=trials, seed=seed, backend=backend,
               results=results,
               **tables.summarise(results, tasks))

@@ -44,7 +44,6 @@ REJECTED = [
     ("plug", "skill_offset", "zero"), ("plug", "router_input", "zero_style"), ("model", "object_tokens", "many"),
     ("plug", "router_cue_slots", -1), ("model", "dtype", "int8"), ("model", "dtype", "float16"),
     ("plug", "fusion_weights", "top1"), ("model", "adapter_width", -1),
-    ("model", "adapter_width", 8),  # the encoder site: no split head for it to sit before
     ("model", "hidden", 100),  # not divisible by the 8 heads
     ("model", "object_tokens", "per_object"),  # with use_images=True
     *[("loss", name, bad) for name in ("rec", "kl", "bsa", "sd", "cvae_kl", "usage", "router_label")
@@ -59,6 +58,7 @@ REJECTED = [
     ("train", "keep_checkpoints", 0), ("train", "skill_labels", "phases"),
     ("fewshot", "taskset", ""), ("fewshot", "demos", 0), ("fewshot", "steps", -1),
     ("fewshot", "trainable", ("router",)), ("fewshot", "marginal_terms", "no"), ("fewshot", "train_overrides", "loss.sd=0"),
+    ("fewshot", "per", "suite"),
     ("trainable", "act", ("head",)), ("trainable", "skillplug", ("router", "router")),
     ("trainable", "act", ["action_head"]),
     ("experiment", "policies", ()), ("experiment", "policies", ("act", "act")),

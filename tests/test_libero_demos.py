@@ -97,34 +97,43 @@ def test_libero_names_and_mixes_that_cannot_work_are_refused():
 
 
 @pytest.mark.slow
-def test_a_policy_trained_on_a_libero_dataset_runs_closed_loop_on_libero(tmp_path):
-  """The path a LIBERO experiment takes: demonstrations, ACT+SkillPlug reading LIBERO's proprioception
-  (16 numbers), object state and instruction, its checkpoint as a controller, trials on the
-  benchmark's init states."""
+def test_the_libero_protocol_runs_end_to_end_through_the_pipeline(tmp_path):
+  """The path a LIBERO experiment takes (experiments/configs/libero_quick.py, shrunk): demonstrations,
+  ACT+SkillPlug reading LIBERO's proprioception (16 numbers), object state and instruction, trials on
+  the benchmark's init states with its routing written, then the few-shot step on a whole unseen
+  "suite" (`fewshot.per=taskset`: here one task) with the router and action head tuned."""
+  from experiments import pipeline
   from skillplug_jax import experiment
-  from skillplug_jax.evaluate import libero as libero_eval
+  from skillplug_jax.data import language
+  from skillplug_jax.evaluate import protocol
   from skillplug_jax.evaluate.policy_controller import load_controller
-  from skillplug_jax.train import config, loop
+  from skillplug_jax.train import run_files
 
-  cfg = config.override(experiment.preset("quick", "skillplug"), [
-      f"taskset={TASK}", "demos=2", f"data_dir={tmp_path / 'data'}", f"workdir={tmp_path / 'run'}",
-      "model.proprio=joint_pos,gripper_qpos,eef_pos,eef_quat", "model.joint_dim=16", "model.hidden=32",
-      "model.instruction_vocab=128",
-      "model.heads=2", "model.ff=64", "model.enc_layers=1", "model.dec_layers=1", "model.cvae_enc_layers=1",
-      "model.chunk=10", "batch_size=4", "max_steps=4", "ckpt_every=4", "warmup_steps=1"])
-  run = loop.train(cfg, progress=False)
+  exp = experiment.get("libero_quick", [
+      "train.taskset=libero_object:1", "train.demos=1", "train.max_steps=4", "train.ckpt_every=4",
+      "train.model.hidden=32", "train.model.heads=2", "train.model.ff=64", "train.model.enc_layers=1",
+      "train.model.dec_layers=1", "train.model.chunk=10", "train.batch_size=4", "train.warmup_steps=1",
+      "trials=2", "eval_batch=2", "fewshot.taskset=libero_object:0", "fewshot.demos=1", "fewshot.steps=2",
+      "policies=skillplug", "workers=1"])
+  pipeline.make_datasets(exp, tmp_path)
+  part = pipeline.job(exp, "skillplug", 0, tmp_path)
+  run = part["run"]
   controller, trained = load_controller(run)
   assert trained.model.proprio == ("joint_pos", "gripper_qpos", "eef_pos", "eef_quat")
   assert set(controller.weights["stats"]) == {"action", "joint_pos", "gripper_qpos", "eef_pos", "eef_quat",
                                               "object_state"}
   assert controller.weights["params"]["encoder"]["joint_proj"]["kernel"].shape == (16, 32)
   # it reads its instruction, in the vocabulary it trained with (kept in the run's statistics)
-  from skillplug_jax.data import language
-  from skillplug_jax.train import run_files
   assert tuple(run_files.read_stats(run)[language.VOCABULARY_KEY]) == language.benchmark_vocabulary()
   words = controller.instruction("pick up the alphabet soup and place it in the basket")
   assert words.shape == (24,) and (words > language.UNK).sum() == 11
-  row = libero_eval.evaluate_task(TASK, controller, trials=2)
-  assert row["trials"] == 2 and len(row["trial_libero_success"]) == 2
+  (pre,) = part["pretrain"]
+  assert pre["task"] == "libero_object:1" and pre["trials"] == 2 and len(pre["trial_libero_success"]) == 2
   # four steps of training do not solve the task: both rules agree there is no success
-  assert row["success_rate"] == 0.0 and row["libero_success_rate"] == 0.0
+  assert pre["success_rate"] == 0.0 and pre["libero_success_rate"] == 0.0
+  routing = protocol.read_routing(pre["routing_file"])
+  assert routing["routing"].shape[0] == 2 and routing["routing"].shape[2] == 8  # K = 8, a row per trial
+  assert pre["diagnostics"]["queries"] == sum(pre["trial_queries"]) > 0
+  (few,) = part["fewshot"]
+  assert few["task"] == "libero_object:0" and sorted(few["trainable"]) == ["action_head", "router"]
+  assert few["run"].endswith("_fewshot/libero_object:0") and few["source"] == run

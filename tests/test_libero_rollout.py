@@ -102,3 +102,29 @@ def test_trial_i_starts_from_the_benchmarks_init_state_i(monkeypatch):
   still = np.tile(rollout.REST, (1, 2, 1)).astype(np.float32)
   rollout.run_trials("libero_spatial:0", replay(still), trials=2, first=7, nthread=1)
   assert np.array_equal(seen[0], suites.init_states("libero_spatial", 0)[7:9])
+
+
+def test_a_routing_policys_weights_and_queries_are_recorded_per_trial(expert_actions, tmp_path):
+  """ACT+SkillPlug's routing on LIBERO, as on DISCOVERSE: each query's weights, NaN between queries
+  and after a trial ends, the queries counted per trial, and the arrays written beside the result."""
+  actions, _ = expert_actions
+  k = 3
+
+  def act(w, c, s, t):  # the expert's actions; asked every other step, routing = one-hot of t % K
+    queried = jnp.full((TRIALS,), t % 2 == 0)
+    routing = jnp.tile(jnp.eye(k)[t % k], (TRIALS, 1))
+    return w[jnp.minimum(t, w.shape[0] - 1)], c, {"routing": routing, "queried": queried}
+
+  policy = Controller(lambda s: (), act, k, "routed", jnp.asarray(actions))
+  routing_file = tmp_path / "O1.routing.npz"
+  row = libero_eval.evaluate_task(TASK, policy, trials=TRIALS, routing_file=routing_file)
+  assert row["trial_success"] == [True] * TRIALS
+  ends = np.asarray(row["trial_success_step"])
+  assert row["trial_queries"] == [int(e // 2 + 1) for e in ends]  # steps 0, 2, ... up to its end
+  from skillplug_jax.evaluate import protocol
+  saved = protocol.read_routing(routing_file)
+  assert saved["routing"].shape[0] == TRIALS and saved["task"] == TASK
+  w = saved["routing"][0]
+  np.testing.assert_array_equal(w[2], np.eye(k)[2])  # queried at step 2: its weights
+  assert np.isnan(w[1]).all() and np.isnan(w[ends[0] + 1:]).all()  # no query: NaN, and after the end
+  assert row["diagnostics"]["queries"] == sum(row["trial_queries"])

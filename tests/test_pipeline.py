@@ -550,3 +550,21 @@ def test_comparison_gives_the_difference_and_its_standard_error():
   assert publish.comparison(table, "multi-task") == line  # 3 seeds: the difference and its SE stand alone
   del table["rows"]["ACT"]
   assert publish.comparison(table, "multi-task") == ""
+
+
+def test_fewshot_units_are_tasks_or_whole_suites():
+  """`FewShot.per`: one fine-tune per task (DISCOVERSE's protocol), or one per comma-separated part
+  of the taskset on all its tasks (the paper's LIBERO protocol: adapt to a suite)."""
+  per_task = experiment.FewShot(taskset="libero_object:0,libero_goal:3")
+  assert fewshot.units(per_task) == [("libero_object:0", ("libero_object:0",)), ("libero_goal:3", ("libero_goal:3",))]
+  per_suite = experiment.FewShot(taskset="libero_object,libero_goal", per="taskset")
+  (obj, obj_tasks), (goal, goal_tasks) = fewshot.units(per_suite)
+  assert (obj, goal) == ("libero_object", "libero_goal")
+  assert obj_tasks == tuple(f"libero_object:{i}" for i in range(10)) and len(goal_tasks) == 10
+  source = experiment.preset("libero_quick", "skillplug")
+  cfg = fewshot.fewshot_config(source, Path("/tmp/src"), obj, per_suite)
+  # the fine-tune trains on the whole suite's demonstrations, read from the dataset of every target
+  assert (cfg.taskset, cfg.data_taskset, cfg.workdir) == ("libero_object", "libero_object,libero_goal",
+                                                          "/tmp/src_fewshot/libero_object")
+  with pytest.raises(ValueError, match="fewshot.per"):
+    experiment.FewShot(per="suite")

@@ -46,6 +46,8 @@ class Trials(NamedTuple):
   declared_step: np.ndarray  # [B] the step our success was declared, -1 if none
   steps_run: int
   frames: list | None = None  # agentview [T_i + 1, H, W, 3] uint8 of the first trials: start to end
+  queries: np.ndarray | None = None  # [B] policy queries made before the trial ended
+  routing: np.ndarray | None = None  # [T, B, K] the router's weights at each query (NaN where none)
 
 
 def run_trials(name: str, controller: Controller, trials: int = suites.INIT_STATES_PER_TASK, first: int = 0,
@@ -103,10 +105,17 @@ def _loop(batch: engine.LiberoBatch, task: suites.Task, controller: Controller, 
   first = np.full(n, -1)
   declared = np.full(n, -1)
   held = np.zeros(n, np.int64)
+  queries = np.zeros(n, np.int32)
+  k = controller.num_skills
+  routing = np.full((limit + HOLD_STEPS, n, max(k, 1)), np.nan, np.float32) if k else None
   t = 0
   while t < limit + HOLD_STEPS - 1 and not done.all():
-    actions, cstate, _ = act(w, cstate, state, t)
+    actions, cstate, info = act(w, cstate, state, t)
     actions = np.asarray(actions, np.float64)
+    queried = np.asarray(info.get("queried", np.ones(n, bool))) & ~done & (t < limit)
+    queries += queried
+    if k and "routing" in info:
+      routing[t] = np.where(queried[:, None], np.asarray(info["routing"], np.float32), np.nan)
     if t >= limit:  # past the limit only a hold already under way may finish: the arm rests
       actions = rest
     batch.step(actions)
@@ -129,4 +138,5 @@ def _loop(batch: engine.LiberoBatch, task: suites.Task, controller: Controller, 
     ends = np.where(declared >= 0, declared + 1, t)
     clip = [stack[:ends[i] + 1, i] for i in range(frames)]
   return Trials(success=declared >= 0, libero_success=first >= 0, first_success_step=first,
-                declared_step=declared, steps_run=t, frames=clip)
+                declared_step=declared, steps_run=t, frames=clip, queries=queries,
+                routing=routing[:t] if routing is not None else None)

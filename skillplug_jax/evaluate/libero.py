@@ -29,10 +29,12 @@ MEASURES = ("libero_success", "success")  # LIBERO's rule, ours
 
 
 def evaluate_task(name: str, controller: Controller, trials: int = suites.INIT_STATES_PER_TASK, videos: int = 0,
-                  video_dir: str | Path | None = None) -> dict:
+                  video_dir: str | Path | None = None, routing_file: str | Path | None = None) -> dict:
   """Both success rates of one controller on one LIBERO task, and every trial's outcomes (paired
-  by init state). videos > 0 writes the agentview camera of the first trials to
-  `video_dir/<suite>_<index>_trialNN.gif`."""
+  by init state). `success_rate` is ours (placed and released, held 0.5 s: what the project's
+  tables count), `libero_success_rate` LIBERO's. videos > 0 writes the agentview camera of the
+  first trials to `video_dir/<suite>_<index>_trialNN.gif`. routing_file: every query's routing
+  weights (ACT+SkillPlug), as `protocol.write_routing` writes DISCOVERSE's."""
   if videos and video_dir is None:
     raise ValueError("videos need a video_dir")
   r = rollout.run_trials(name, controller, trials, frames=videos)
@@ -40,10 +42,21 @@ def evaluate_task(name: str, controller: Controller, trials: int = suites.INIT_S
     protocol.write_videos(r.frames, Path(video_dir), name.replace(":", "_"))
   task = suites.parse(name)
   reached = r.first_success_step[r.libero_success]
+  routing = [r.routing] if r.routing is not None else []
+  if routing_file is not None and routing:
+    protocol.write_routing(routing_file, name, routing, trials, r.success, r.first_success_step, r.queries)
+  success = r.success
   return dict(task=name, abbr=suites.abbr(name), name=task.name, language=task.language, trials=trials,
-              success_rate=float(r.success.mean()), libero_success_rate=float(r.libero_success.mean()),
-              trial_success=r.success.tolist(), trial_libero_success=r.libero_success.tolist(),
-              median_steps=float(np.median(reached)) if reached.size else None, time_limit=task.time_limit)
+              success_rate=float(success.mean()), successes=int(success.sum()),
+              libero_success_rate=float(r.libero_success.mean()),
+              trial_success=success.tolist(), trial_libero_success=r.libero_success.tolist(),
+              trial_queries=r.queries.tolist(), trial_success_step=r.declared_step.tolist(),
+              mean_queries_success=float(r.queries[success].mean()) if success.any() else None,
+              mean_steps_success=float(r.declared_step[success].mean()) if success.any() else None,
+              median_steps=float(np.median(reached)) if reached.size else None, time_limit=task.time_limit,
+              mean_weights=(np.nanmean(r.routing.reshape(-1, r.routing.shape[-1]), axis=0).tolist()
+                            if routing and np.isfinite(r.routing).any() else None),
+              **({"diagnostics": protocol.routing_diagnostics(routing, trials)} if routing else {}))
 
 
 def evaluate(policies: Mapping[str, Sequence[Controller]], tasks: Sequence[str],

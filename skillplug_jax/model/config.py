@@ -75,9 +75,6 @@ _RELATIONS = (
     validation.Relation("object_tokens", lambda c: not (c.use_images and c.object_tokens == "per_object"),
                         lambda c: "'one' for an image policy (it never reads the object state; "
                                   "'per_object' is for the state-only variant, use_images=False)"),
-    validation.Relation("adapter_width", lambda c: not c.adapter_width or c.split_head,
-                        lambda c: "0 unless model.plug.site='decoder' (the adapter sits before f_act, the "
-                                  "split head's action_proj)"),
 )
 
 
@@ -135,8 +132,10 @@ class ModelConfig:
   # learned per-slot position: act.py).
   object_tokens: str = "one"
   # Ours (issue 43): > 0 adds a residual bottleneck of this width before f_act (group 'adapter',
-  # model/act.py's Adapter), with plug.site='decoder'; a few-shot fine-tune may add it to a source
-  # that has none (`FINE_TUNE_ADDITIONS`). 32 at hidden 64: 4,320 parameters, the router's 4,420.
+  # model/act.py's Adapter): with plug.site='decoder' on the decoder's steps, at the encoder site
+  # (issue 42) on the tokens the whole action head reads. A few-shot fine-tune may add it to a
+  # source that has none (`FINE_TUNE_ADDITIONS`). 32 at hidden 64: 4,320 parameters, the router's
+  # 4,420 at K = 4.
   adapter_width: int = 0
   # The task's instruction as one more encoder token (ours; issue 42: LIBERO-Goal's tasks share a
   # scene): 0 reads none; > 0 is the rows of a word-embedding table learned from scratch

@@ -15,7 +15,9 @@ masks by name):
   action_proj  with plug.site='decoder' only (both policies): the final norm
                and action projection leave action_head and are f_act alone
   adapter      with adapter_width > 0 only (ours): a residual bottleneck before
-               f_act, added by a few-shot fine-tune (issue 43's baseline)
+               f_act (split head: on the decoder's steps; the encoder site: on
+               the tokens the action head reads), added by a few-shot fine-tune
+               (issues 42-43's capacity-matched baseline)
 
 Where the plug sits (`PlugConfig.site`). 'encoder' (the default):
 h~ = sum_k r_k Interactor(h, s_k) over the encoder's scene tokens, decoded by
@@ -130,7 +132,7 @@ class Policy(nn.Module):
     """The decoder without the plug: tokens [B, N, hidden] (and positions) -> action chunk [B, chunk, A]."""
     if self.config.split_head:
       return self._project(self.action_head(h, pos, not train)[0])
-    return self.action_head(h, pos, not train)
+    return self.action_head(self._adapt(h), pos, not train)
 
   def _plug_input(self, h, pos, deterministic):
     """What the interactor reads, and its positions: the scene tokens, or the decoder's steps."""
@@ -142,11 +144,15 @@ class Policy(nn.Module):
     """f_act of the fused feature."""
     if self.config.split_head:
       return self._project(fused)
-    return self.action_head(fused, pos, deterministic)
+    return self.action_head(self._adapt(fused), pos, deterministic)
 
   def _project(self, d):
     """f_act of decoder steps d [B, chunk, D] (split head), through the adapter where there is one."""
-    return self.action_proj(self.adapter(d) if self.config.adapter_width else d)
+    return self.action_proj(self._adapt(d))
+
+  def _adapt(self, x):
+    """x through the adapter where there is one (`adapter_width`), else x."""
+    return self.adapter(x) if self.config.adapter_width else x
 
   def _split_cue(self, obs):
     """(obs with the router's cue zeroed, the cue [B, slots * 7]) under

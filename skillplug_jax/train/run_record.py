@@ -39,11 +39,16 @@ class Trainable:
     return tuple(sorted(getattr(self, policy)))
 
 
+# What one fine-tune adapts to: each task of `FewShot.taskset` (DISCOVERSE's protocol), or each of its
+# comma-separated parts, a whole suite (the paper's LIBERO protocol: adapt to a suite, 5 demos per task).
+FEWSHOT_UNITS = ("task", "taskset")
+
 _FEWSHOT_RULES = dict(taskset=validation.text(), demos=validation.count(1),
                       steps=validation.count(0, " (0: the source run's own `epochs`)"),
                       trainable=validation.Rule(lambda v: isinstance(v, Trainable),
                                                 "a Trainable (groups per policy: Trainable(act=..., skillplug=...))"),
-                      marginal_terms=validation.flag(), train_overrides=validation.each(validation.text()))
+                      marginal_terms=validation.flag(), train_overrides=validation.each(validation.text()),
+                      per=validation.one_of(FEWSHOT_UNITS))
 
 
 @dataclasses.dataclass(frozen=True)
@@ -65,6 +70,9 @@ class FewShot:
   # TrainConfig overrides (train/config.py syntax, `loss.router_label=0`) of the fine-tune alone,
   # applied after the rest of this protocol (`fewshot.fewshot_config`); pretraining keeps its own.
   train_overrides: tuple[str, ...] = ()
+  # "task": one fine-tune per task of `taskset`, evaluated on it; "taskset": one per comma-separated
+  # part of `taskset` (a LIBERO suite), on every task of the part, evaluated on each of them.
+  per: str = "task"
 
   def __post_init__(self):
     validation.check(self, "fewshot.", _FEWSHOT_RULES)
