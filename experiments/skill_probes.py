@@ -43,7 +43,7 @@ from skillplug_jax import diagnostics, experiment
 from skillplug_jax.atomic_json import write_json_atomic, write_text_atomic
 from skillplug_jax.data import loader as data_loader
 from skillplug_jax.data import segments
-from skillplug_jax.evaluate import protocol
+from skillplug_jax.evaluate import tables, trials
 from skillplug_jax.evaluate.tables import mean_se
 from skillplug_jax.evaluate.policy_controller import load_controller
 from skillplug_jax.evaluate.routing import nmi
@@ -94,9 +94,10 @@ def closed_loop(run: Path, exp: Experiment, tasks, k: int, videos: int = 0,
     if not path.exists():
       controller, cfg = load_controller(run, routing=weights)
       res = {}
-      for task in tasks:
-        r = protocol.evaluate_task(task, controller, exp.trials, exp.eval_seed, exp.eval_batch, videos=videos,
-                                   video_dir=None if video_dir is None else video_dir / mode)
+      for task in tasks:  # our tabletop's trials or LIBERO's (the benchmark's init states)
+        r = trials.evaluate_task(task, controller, cfg, exp.trials, exp.eval_seed, exp.eval_batch,
+                                 backend=envs.resolve_backend(exp.train.backend), videos=videos,
+                                 video_dir=None if video_dir is None else video_dir / mode)
         res[task] = dict(success_rate=r["success_rate"], trial_success=r["trial_success"])
       write_json_atomic(path, res)
     out[mode] = json.loads(path.read_text())
@@ -130,8 +131,9 @@ def demo_states(run: Path, tasks, per_episode: int = 4) -> dict[str, dict]:
   cfg = run_files.read_config(run)
   data = loop.load_data(cfg, generate=False, progress=False)
   data = dataclasses.replace(data, stats=run_files.read_stats(run))
+  data, instructions = loop.instruction_ids(cfg, data)  # a policy that reads its task's instruction
   ld = data_loader.ChunkLoader(data, 1, chunk=cfg.model.chunk, images=cfg.model.use_images,
-                               normalize_object_state=cfg.model.normalize_object_state)
+                               normalize_object_state=cfg.model.normalize_object_state, instructions=instructions)
   # each state's manipulation phase mined from its demonstration (data/segments.py), whatever the
   # run trained on: does the routing follow the phases?
   phases = loop.skill_labels(dataclasses.replace(cfg, skill_labels="tabletop_phases"), data)
@@ -144,7 +146,8 @@ def demo_states(run: Path, tasks, per_episode: int = 4) -> dict[str, dict]:
     frac = np.tile((np.arange(per_episode) + 0.5) / per_episode, len(eps))
     t = np.floor(frac * data.length[ep]).astype(np.int64)
     b = ld.gather(ep, t)
-    out[task] = {k: v for k, v in b.items() if k in ("joint_pos", "object_state") or k.endswith("_rgb")}
+    read = set(cfg.model.proprio) | {"joint_pos", "object_state", "instruction"}  # what the policy reads
+    out[task] = {k: v for k, v in b.items() if k in read or k.endswith("_rgb")}
     out[task]["mined_phase"] = phases[data.start[ep] + t]
   return out
 
@@ -199,7 +202,7 @@ def geometry(run: Path, act_run: Path | None, tasks) -> dict:
 
 def report(result: dict) -> str:
   tasks = result["tasks"]
-  abbr = [envs.task_class(t).abbr for t in tasks]
+  abbr = [tables.abbr(t) for t in tasks]
   runs = list(result["seeds"])  # "0", "1", ... or, for a config with variants, "<variant>/seed<S>"
   looped = [s for s in runs if "closed_loop" in result["seeds"][s]]
   lines = closed_loop_report(result, looped, tasks, abbr) if looped else []

@@ -76,6 +76,21 @@ def test_a_libero_dataset_holds_successful_expert_episodes_with_their_instructio
   assert batch["actions"].shape == (4, 5, 7)
 
 
+def test_the_mined_phases_read_libero_demonstrations_in_order(dataset):
+  """train.skill_labels=tabletop_phases on LIBERO (its gripper command is +-1, our labellers read an
+  opening in metres: `layout.tabletop_gripper`): each demonstration runs free -> grasp ->
+  transport -> release, as the expert did it."""
+  from skillplug_jax.data import segments
+  _, path = dataset
+  d = loader.load_demonstrations(path)
+  np.testing.assert_allclose(layout.tabletop_gripper(np.array([[0.3, -1.0], [0.3, 1.0]]))[:, -1], [0.04, 0.0])
+  for e in range(d.num_episodes):
+    ep = d.episode(e)
+    labels = segments.tabletop_phases(ep["joint_pos"], ep["object_state"], layout.tabletop_gripper(ep["action"]))
+    firsts = [int(np.flatnonzero(labels == q)[0]) for q in (1, 2, 3)]  # grasp, transport, release
+    assert labels[0] == 0 and firsts == sorted(firsts), labels
+
+
 def test_the_dataset_is_reused_and_one_of_another_layout_is_refused(dataset):
   cfg, path = dataset
   assert demos.make_demos(cfg, out=path.parent, progress=False) == path

@@ -28,6 +28,15 @@ _OBSERVED = {"joint_pos": "robot0_joint_pos", "gripper_qpos": "robot0_gripper_qp
              "eef_quat": "robot0_eef_quat"}
 
 
+def tabletop_gripper(action: np.ndarray) -> np.ndarray:
+  """LIBERO actions with the gripper command (-1 open, +1 close) read as our tabletop's commanded
+  opening in metres (0 closed, 0.04 open), so that the labellers of data/segments.py, written for
+  our tabletop's actions, mine LIBERO's demonstrations too."""
+  out = np.array(action, np.float32, copy=True)
+  out[..., -1] = np.where(out[..., -1] > 0, 0.0, 0.04)
+  return out
+
+
 def movable_objects(meta: dict) -> list[str]:
   return [name for name, o in meta["objects"].items() if o["kind"] == "object"]
 

@@ -17,15 +17,18 @@ from skillplug_jax.evaluate import libero, protocol
 
 
 def evaluate_task(task: str, controller: Controller, cfg, trials: int, seed: int = protocol.EVAL_SEED,
-                  batch: int = 50, backend: str = "mujoco", routing_file: str | Path | None = None) -> dict:
-  """`trials` paired trials of `controller` (trained by `cfg`, a TrainConfig) on `task`."""
+                  batch: int = 50, backend: str = "mujoco", routing_file: str | Path | None = None,
+                  videos: int = 0, video_dir: str | Path | None = None) -> dict:
+  """`trials` paired trials of `controller` (trained by `cfg`, a TrainConfig) on `task`; videos > 0:
+  GIFs of the first trials in `video_dir`."""
   if libero_suites.is_libero(task):
     if trials > libero_suites.INIT_STATES_PER_TASK:
       raise ValueError(f"{task}: LIBERO has {libero_suites.INIT_STATES_PER_TASK} init states per task; "
                        f"cannot run {trials} paired trials")
     if backend != "mujoco":
       raise ValueError(f"{task}: LIBERO's trials run on MuJoCo's C engine only (backend 'mujoco'), not {backend!r}")
-    return dict(libero.evaluate_task(task, controller, trials, routing_file=routing_file), seed=None,
-                backend=backend)
+    return dict(libero.evaluate_task(task, controller, trials, videos, video_dir, routing_file=routing_file),
+                seed=None, backend=backend)
   return protocol.evaluate_task(task, controller, trials, seed, batch, render=cfg.model.use_images,
-                                image_size=cfg.model.image_size, routing_file=routing_file, backend=backend)
+                                image_size=cfg.model.image_size, videos=videos, video_dir=video_dir,
+                                routing_file=routing_file, backend=backend)

@@ -218,7 +218,11 @@ def skill_labels(cfg: TrainConfig, data) -> np.ndarray | None:
   if not cfg.skill_labels:
     return None
   s = data.steps
-  return segments.label_steps(cfg.skill_labels, s["joint_pos"], s["object_state"], s["action"],
+  action = s["action"]
+  if is_libero(cfg):  # LIBERO's gripper command is +-1; the labellers read our tabletop's opening
+    from envs.libero import layout as libero_layout
+    action = libero_layout.tabletop_gripper(action)
+  return segments.label_steps(cfg.skill_labels, s["joint_pos"], s["object_state"], action,
                               data.start, data.length)
 
 
