@@ -7,8 +7,9 @@ through the `cpu_image` backbone (a small ResNet with GroupNorm, stem width
 16, three stages of one block: sized by measurement on DISCOVERSE, not
 searched on LIBERO), LIBERO's proprioception (16 numbers), the instruction
 as an encoder token learned from scratch (data/language.py), K = 8 as the
-paper's LIBERO runs. Demonstrations are our scripted experts', 20 per task
-(LIBERO's are 50 human teleoperations per task, on a hub we cannot reach).
+paper's LIBERO runs. Demonstrations are our scripted experts', 50 per task
+as LIBERO's count (LIBERO's own are human teleoperations, on a hub we
+cannot reach: ours are smoother and more alike than a person's).
 3 seeds; 20 paired trials per task (the benchmark's init states 0-19, the
 same for every arm; LIBERO's protocol has 50: the CPU budget).
 
@@ -40,7 +41,7 @@ def get_config() -> Experiment:
                       backbone_width=16, backbone_stages=(1, 1, 1), proprio=LIBERO_PROPRIO, joint_dim=16,
                       instruction_vocab=128, hidden=64, heads=4, ff=256, enc_layers=2, dec_layers=2,
                       cvae_enc_layers=1, plug=PlugConfig(num_skills=8, skill_latent_dim=16, alignment_dim=32))
-  train = TrainConfig(preset="libero_cpu", model=model, taskset="libero_10", demos=20, backend="mujoco",
+  train = TrainConfig(preset="libero_cpu", model=model, taskset="libero_10", demos=50, backend="mujoco",
                       batch_size=32, lr=1e-3, warmup_steps=200, lr_schedule="cosine", max_steps=10_000,
                       log_every=100, ckpt_every=1000)
   fewshot = FewShot(taskset="libero_object,libero_goal,libero_spatial", per="taskset", demos=5, steps=2000)
