@@ -21,7 +21,7 @@ export MUJOCO_GL ?= egl
 # contention doubled the quick preset's step.) docs/measurements/speed.md.
 export GLIBC_TUNABLES ?= glibc.malloc.hugetlb=1
 
-.PHONY: install test test-fast test-libero quickstart toy-skills paper-cpu paper-cpu-image loss-ablation k-sweep plug-readings libero-cpu libero-quick notebooks experts demos pretrain fewshot eval bench-envs bench-loader bench-train bench-eval bench-eval-scale bench-libero bench soak scenes clean
+.PHONY: install test test-fast test-libero quickstart toy-skills paper-cpu paper-cpu-image loss-ablation k-sweep plug-readings libero-cpu libero-cpu-image libero-quick notebooks experts demos pretrain fewshot eval bench-envs bench-loader bench-train bench-eval bench-eval-scale bench-libero bench soak scenes clean
 
 install: $(VENV)/.installed
 
@@ -122,6 +122,11 @@ libero-cpu: install
 
 libero-quick: install
 	$(PY) -m experiments.pipeline --config libero_quick --out $(OUT)/libero_quick $(SET)
+
+# The same protocol with both cameras at 64x64 (experiments/configs/libero_cpu_image.py): hours per
+# suite and arm on a 2-core CPU (software GL); not yet run.
+libero-cpu-image: install
+	$(PY) -m experiments.pipeline --config libero_cpu_image --out $(OUT)/libero_cpu_image $(if $(VARIANTS),--variants $(VARIANTS)) $(SET)
 
 # The notebooks (notebooks/), executed in place on docs/results/paper_cpu.
 notebooks: install

@@ -168,12 +168,14 @@ def _generate_libero_task(cfg: DemoConfig, task: str, bar) -> tuple[list[Episode
   """Run expert batches from drawn LIBERO starts (`envs.libero.starts`, seeded by cfg.seed) until
   `cfg.demos` episodes succeed."""
   kept, indices, attempts, successes, nans, t0 = [], [], 0, 0, 0, time.time()
-  num = min(cfg.batch, cfg.demos)
-  max_attempts = 3 * cfg.demos + 2 * num
+  max_attempts = 3 * cfg.demos + 2 * min(cfg.batch, cfg.demos)
   while len(kept) < cfg.demos:
     if attempts >= max_attempts:
       raise RuntimeError(f"{task}: only {len(kept)} of {attempts} expert episodes succeeded; "
                          f"cannot collect {cfg.demos} demonstrations")
+    # a LIBERO episode costs seconds (its drawn start, cameras in software GL): once a batch has run,
+    # the next simulates only what is missing, with a margin for the expert's failures
+    num = min(cfg.batch, cfg.demos) if not attempts else min(cfg.batch, 2 * (cfg.demos - len(kept)) + 2)
     bar.set_postfix_str(f"{task} (simulating {num})")
     episodes = libero_recording.record_expert(task, attempts, num, seed=cfg.seed, images=cfg.images,
                                               image_size=cfg.image_size[0])
