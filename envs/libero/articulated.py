@@ -275,9 +275,12 @@ class Articulated:
 
   def _holds(self, step: Step, ids: np.ndarray) -> np.ndarray:
     a = self.batch.data
-    if step.kind == DRAG:  # in the region's middle half (the atom's own test also reads heights)
+    if step.kind == DRAG:  # in the region's middle half, or the atom itself holds (a plate dragged
+      # to the region's edge is there: dragging it again would cost the rest of the episode)
       d = a["site_xpos"][ids, step.site, :2] - a["xpos"][ids, step.atom.body, :2]
-      return np.linalg.norm(d, axis=-1) < min(step.atom.size[:2]) - PUSH_MARGIN
+      inputs = predicates.GoalInputs(*[f[ids] for f in self.batch.goal_inputs()])
+      return (np.linalg.norm(d, axis=-1) < min(step.atom.size[:2]) - PUSH_MARGIN) | \
+          predicates._TESTS[step.atom.test](step.atom, inputs)
     return predicates._joints(step.atom, predicates.GoalInputs(None, None, None, None, a["qpos"][ids], None))
 
   def _preset(self, ids: np.ndarray, opening: float) -> np.ndarray:
