@@ -68,6 +68,7 @@ DRAG_MAX_HEIGHT = 0.03  # m: ... and this flat is dragged by its rim, not graspe
 INTEGRAL_GAIN, INTEGRAL_NEAR, INTEGRAL_MAX = 0.15, 0.03, 0.04  # per step, m, m
 SLOW_STEP, DRIVE_STEP = 0.015, 0.02  # m: the most the hand's goal leads it by while moving in or driving a joint
 PRE_REACHED = 0.02  # m: the pre-pose is reached this closely
+IN_REACHED = 0.01  # m: a handle's grip point is reached this closely (the fingers open 2.6 cm either side of its bar)
 DRIVE_STUCK = 0.01  # m/s: a pulled drawer this slow is stuck
 STALLED = 1e-3  # m/s or rad/s: a joint this slow has stopped
 GRIP_STEPS, RELEASE_STEPS = 10, 8
@@ -489,7 +490,7 @@ class Articulated:
       rot_err = np.linalg.norm(_rotation_error(ori, hand_mat[ids]), axis=-1)
       done = np.zeros(ids.size, bool)
       done |= (phase == PRE) & (err < PRE_REACHED) & (rot_err < 0.1)  # a pre-pose: IN is the precise approach
-      done |= (phase == IN) & (err < 0.006) & (rot_err < 0.1)
+      done |= (phase == IN) & (err < (IN_REACHED if step.kind == PULL else 0.006)) & (rot_err < 0.1)
       done |= (phase == GRIP) & ((count >= GRIP_STEPS) | (step.kind == PUSH_JOINT))  # nothing to grasp
       empty = np.abs(a["qpos"][ids][:, self._fingers]).sum(-1) < FINGERS_EMPTY  # closed on nothing: it slipped
       lost = (step.kind != PUSH_JOINT) & empty & (count > GRIP_STEPS)
