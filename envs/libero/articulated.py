@@ -66,7 +66,9 @@ PUSH_DONE = 0.025  # m: a push stops with the object's centre this close to the 
 DRAG_MIN_WIDTH = 0.07  # m: an object wider than the open fingers on both sides ...
 DRAG_MAX_HEIGHT = 0.03  # m: ... and this flat is dragged by its rim, not grasped across
 INTEGRAL_GAIN, INTEGRAL_NEAR, INTEGRAL_MAX = 0.15, 0.03, 0.04  # per step, m, m
-SLOW_STEP, DRIVE_STEP = 0.015, 0.012  # m: the most the hand's goal leads it by while moving in or driving a joint
+SLOW_STEP, DRIVE_STEP = 0.015, 0.02  # m: the most the hand's goal leads it by while moving in or driving a joint
+PRE_REACHED = 0.02  # m: the pre-pose is reached this closely
+IN_REACHED = 0.01  # m: a handle's grip point is reached this closely (the fingers open 2.6 cm either side of its bar)
 DRIVE_STUCK = 0.01  # m/s: a pulled drawer this slow is stuck
 STALLED = 1e-3  # m/s or rad/s: a joint this slow has stopped
 GRIP_STEPS, RELEASE_STEPS = 10, 8
@@ -274,9 +276,12 @@ class Articulated:
 
   def _holds(self, step: Step, ids: np.ndarray) -> np.ndarray:
     a = self.batch.data
-    if step.kind == DRAG:  # in the region's middle half (the atom's own test also reads heights)
+    if step.kind == DRAG:  # in the region's middle half, or the atom itself holds (a plate dragged
+      # to the region's edge is there: dragging it again would cost the rest of the episode)
       d = a["site_xpos"][ids, step.site, :2] - a["xpos"][ids, step.atom.body, :2]
-      return np.linalg.norm(d, axis=-1) < min(step.atom.size[:2]) - PUSH_MARGIN
+      inputs = predicates.GoalInputs(*[f[ids] for f in self.batch.goal_inputs()])
+      return (np.linalg.norm(d, axis=-1) < min(step.atom.size[:2]) - PUSH_MARGIN) | \
+          predicates._TESTS[step.atom.test](step.atom, inputs)
     return predicates._joints(step.atom, predicates.GoalInputs(None, None, None, None, a["qpos"][ids], None))
 
   def _preset(self, ids: np.ndarray, opening: float) -> np.ndarray:
@@ -484,15 +489,18 @@ class Articulated:
       err = np.linalg.norm(uncapped - hand[ids], axis=-1)
       rot_err = np.linalg.norm(_rotation_error(ori, hand_mat[ids]), axis=-1)
       done = np.zeros(ids.size, bool)
-      done |= (phase == PRE) & (err < 0.01) & (rot_err < 0.05)
-      done |= (phase == IN) & (err < 0.006) & (rot_err < 0.1)
+      done |= (phase == PRE) & (err < PRE_REACHED) & (rot_err < 0.1)  # a pre-pose: IN is the precise approach
+      done |= (phase == IN) & (err < (IN_REACHED if step.kind == PULL else 0.006)) & (rot_err < 0.1)
       done |= (phase == GRIP) & ((count >= GRIP_STEPS) | (step.kind == PUSH_JOINT))  # nothing to grasp
       empty = np.abs(a["qpos"][ids][:, self._fingers]).sum(-1) < FINGERS_EMPTY  # closed on nothing: it slipped
       lost = (step.kind != PUSH_JOINT) & empty & (count > GRIP_STEPS)
       done |= (phase == DRIVE) & (self._reached(step, ids) | (count >= DRIVE_LIMIT) | lost)
       done |= (phase == RELEASE) & (count >= RELEASE_STEPS)
       done |= (phase == BACK) & (err < 0.015)
-      done |= (phase == RESTORE) & (err < 0.03) & (rot_err < RESTORED)
+      # the hand turns back fully only for a next articulated step (its approach is planned from the
+      # reset pose); a pick turns the hand while it moves above its object, and the plan's end needs no turn
+      turn_back = k + 1 < len(ex.tasks) and (k + 1) in self.steps
+      done |= (phase == RESTORE) & (err < 0.03) & ((rot_err < RESTORED) | (not turn_back))
       done |= (phase < DONE) & (phase != DRIVE) & (count >= PHASE_LIMIT)
       took = ids[done & (phase == GRIP)]  # the hold on the joint: where the twist or door turn starts from
       self.grip_pos[took] = hand[took]
@@ -503,8 +511,9 @@ class Articulated:
       backed = ids[done & (phase == BACK)]
       self.back_from[backed] = hand[backed]
       nxt = np.where(done, phase + 1, phase)
-      # a step whose atom fails once the hand is back starts over (a slipped grasp, a stuck push)
-      again = (nxt == DONE) & (phase != DONE) & ~self._holds(step, ids) & (self.retries[ids] < RETRIES)
+      # a step whose atom fails once the hand is back starts over (a slipped grasp, a stuck push),
+      # in the step's own orientation: no turn back to the reset pose first
+      again = (nxt == RESTORE) & (phase == BACK) & ~self._holds(step, ids) & (self.retries[ids] < RETRIES)
       self.retries[ids[again]] += 1
       nxt = np.where(again, PRE, nxt)
       self.phase[ids], self.count[ids] = nxt, np.where(done, 0, count)
@@ -514,6 +523,7 @@ class Articulated:
         continue
       if k + 1 < len(ex.tasks):  # the plan's next step, from its first phase
         ex.task[finished], ex.phase[finished], ex.count[finished], ex.fresh[finished] = k + 1, 0, 0, True
+        ex.from_articulated[finished] = True
         self.retries[finished] = 0
       else:
         ex.phase[finished] = expert_done()

@@ -47,6 +47,8 @@ TIPPED_COST = 1.0  # score per metre a rim point lies below the rim's highest (a
 RIM_CARRY_STEP = 0.025  # m: the carry's target at most this far ahead of a rim-held object's hand
 ABOVE_Z_TOLERANCE = 0.03  # m: above the grasp point is reached at this height error (at full
 #                           reach the arm cannot lift the hand to the exact clearance height)
+ABOVE_TURNED = 0.1  # rad: ... and the hand turned to the grasp's orientation this closely (it turns
+#                     while it moves: a hand handed over by an articulated step is still turning back)
 OPEN = 0.08  # m between the fingers' pads, open
 FINGER_THICKNESS = 0.025  # m: a finger's outer face beyond its pad's (robosuite's finger collision mesh)
 RIM_OPENING, NARROW_COST = 0.05, 0.003  # m: the fingers open this far only about a rim where the
@@ -65,6 +67,7 @@ CLOSE_STEPS = 10  # the fingers close for at least this many steps ...
 CLOSE_STEPS_MAX = 16  # ... and on until they stop (a bowl's 3 mm wall: the fingers travel 7 cm)
 CLOSED_SPEED = 0.001  # m per step: the fingers have stopped on the object
 RELEASE_STEPS = 8
+STILL_SPEED, STILL_STEPS = 0.001, 5  # m per step: a lowered object this slow for this many steps rests
 PHASE_LIMIT = 60  # control steps before a phase gives up waiting and moves on
 HOLD_STEPS = 10  # control steps (0.5 s) the goal must keep holding after the expert is done
 
@@ -199,6 +202,9 @@ class Expert:
     self.carry_z = np.zeros(n)  # the hand's carrying height, fixed when the lift starts
     self.lift_xy, self.lift_z = np.zeros((n, 2)), np.zeros(n)  # where the lift starts going up
     self.fresh = np.ones(n, bool)
+    self.hand_z = np.zeros(n)  # the hand's height at the previous step
+    self.still = np.zeros(n, np.int64)  # steps the hand has held still while lowering
+    self.from_articulated = np.zeros(n, bool)  # handed over by an articulated step, the hand still turning back
     self._finger_q = [j["qposadr"] for j in meta["robot"]["gripper_joints"]]
     self.gap = np.zeros(n)  # the fingers' opening at the previous step
     self.articulated = articulated.Articulated(self, steps)
@@ -226,14 +232,19 @@ class Expert:
       return site[:, :2], site[:, 2]
     return site[:, :2], site[:, 2] + size[2]
 
-  def _grasp_plan(self, t: Task, ids: np.ndarray, hand_mat: np.ndarray, centre: np.ndarray, grasp_z: np.ndarray):
+  def _grasp_plan(self, t: Task, ids: np.ndarray, hand_mat: np.ndarray, centre: np.ndarray, grasp_z: np.ndarray,
+                  at_rest: np.ndarray | None = None):
     """(hand orientation [n, 3, 3], grasp point - object centre [n, 2], finger opening [n]): the fingers close across
     a side of the object that fits between them, at a point along its other side where the
-    palm keeps the most room from every other object standing above the palm's height."""
+    palm keeps the most room from every other object standing above the palm's height.
+    `hand_mat` is the orientation the plan turns from: the hand's, or (where `at_rest`) the reset
+    pose's, for a hand still turning back from an articulated step."""
     a = self.batch.data
     mat = a["xmat"][ids, t.body].reshape(-1, 3, 3)
     extent = t.box[1] - t.box[0]
     fingers = a["xpos"][ids, self._fingers[0]] - a["xpos"][ids, self._fingers[1]]
+    if at_rest is not None:  # the fingers close along the site's x axis
+      fingers = np.where(at_rest[:, None], hand_mat[:, :, 0], fingers)
     f = fingers[:, :2] / np.maximum(np.linalg.norm(fingers[:, :2], axis=-1, keepdims=True), 1e-9)
     candidates = []  # (finger axis [n, 2], offset [n, 2], penalty)
     if t.rim is not None:  # across the wall at one of its rim points, the fingers radial
@@ -350,8 +361,11 @@ class Expert:
       start = self.fresh[ids] & (phase == ABOVE)
       if start.any():
         sel = ids[start]
+        rest = self.from_articulated[sel]
+        ref = np.where(rest[:, None, None], self.articulated.down, hand_mat[sel])
         self.goal_ori[sel], self.grasp_xy[sel], self.opening[sel] = self._grasp_plan(
-            t, sel, hand_mat[sel], centre[start], grasp_z[start])
+            t, sel, ref, centre[start], grasp_z[start], rest)
+        self.from_articulated[sel] = False
       grasp_xy = centre[:, :2] + self.grasp_xy[ids]
       carry_z = self.carry_z[ids]
       tgt = hand[ids].copy()
@@ -398,12 +412,17 @@ class Expert:
       count = self.count[ids] + 1
       done = np.zeros(ids.size, bool)
       flat = np.linalg.norm(tgt[:, :2] - hand[ids, :2], axis=-1)
-      done |= (phase == ABOVE) & (flat < 0.01) & (np.abs(tgt[:, 2] - hand[ids, 2]) < ABOVE_Z_TOLERANCE)
+      turned = np.linalg.norm(_rotation_error(self.goal_ori[ids], hand_mat[ids]), axis=-1) < ABOVE_TURNED
+      done |= (phase == ABOVE) & (flat < 0.01) & (np.abs(tgt[:, 2] - hand[ids, 2]) < ABOVE_Z_TOLERANCE) & turned
       done |= (phase == DESCEND) & (err < 0.006)
       done |= (phase == CLOSE) & (count >= CLOSE_STEPS) & ((closing[ids] < CLOSED_SPEED) | (count >= CLOSE_STEPS_MAX))
       done |= (phase == LIFT) & (np.abs(carry_z - hand[ids, 2]) < 0.02)
       done |= (phase == CARRY) & (np.linalg.norm(tgt[:, :2] - hand[ids, :2], axis=-1) < 0.01)
-      done |= (phase == LOWER) & (err < 0.008)
+      # or resting on something: the hand held still over the target (an In region's middle may lie
+      # below its container's floor: a drawer's)
+      still = np.abs(hand[ids, 2] - self.hand_z[ids]) < STILL_SPEED
+      self.still[ids] = np.where((phase == LOWER) & still, self.still[ids] + 1, 0)
+      done |= (phase == LOWER) & ((err < 0.008) | (self.still[ids] >= STILL_STEPS))
       done |= (phase == RELEASE) & (count >= RELEASE_STEPS)
       done |= (phase == RETREAT) & (err < 0.02)
       done |= (phase < DONE) & (count >= PHASE_LIMIT) & (phase != CLOSE) & (phase != RELEASE)
@@ -423,6 +442,7 @@ class Expert:
       self.phase[ids] = nxt
       self.count[ids] = np.where(done, 0, count)
       self.fresh[ids] = done
+    self.hand_z = hand[:, 2].copy()
     self.articulated.act(hand, hand_mat, target, grip)
     pos = np.clip((target - hand) / 0.05, -1, 1)
     rot = np.clip(_rotation_error(self.goal_ori, hand_mat) / 0.5, -1, 1)
