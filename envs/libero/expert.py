@@ -67,6 +67,7 @@ CLOSED_SPEED = 0.001  # m per step: the fingers have stopped on the object
 RELEASE_STEPS = 8
 PHASE_LIMIT = 60  # control steps before a phase gives up waiting and moves on
 HOLD_STEPS = 10  # control steps (0.5 s) the goal must keep holding after the expert is done
+EMPTY_GAP = 0.004  # m: fingers this close together after closing hold nothing (the grasp missed)
 TRAVERSE_CLEARANCE = 0.04  # m the hand's grip site keeps above what stands along its way to the next grasp
 TRAVERSE_NEAR = 0.03  # m: this close (horizontally) to the grasp point the hand descends to the clearance height
 SPOT_MARGIN = 0.02  # m: a spot in a region keeps the object's body this far inside the region's edge
@@ -490,6 +491,11 @@ class Expert:
       lifted = done & (phase == LIFT)
       self.offset[ids[lifted]] = centre[lifted] - hand[ids[lifted]]
       nxt = np.where(done, phase + 1, phase)
+      # a grasp across the object that closed on nothing (the fingers landed on a neighbour's edge)
+      # starts over from above (not a rim grasp: a bowl's 3 mm wall leaves the fingers as close)
+      missed = (phase == LIFT) & (count > 3) & (gap[ids] < EMPTY_GAP) & (t.rim is None)
+      done |= missed
+      nxt = np.where(missed, ABOVE, nxt)
       last = nxt == DONE
       more = last & (k + 1 < len(self.tasks))  # next atom
       self.task[ids[more]] = k + 1
