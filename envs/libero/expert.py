@@ -361,6 +361,14 @@ class Expert:
     near = (self._flat_distance(points, gpos, gmat, half) < PALM_HALF_LENGTH).any(1)  # [n, g]
     return np.where(near, top, -np.inf).max(-1)
 
+  def _shared(self, k: int) -> bool:
+    """Atom k puts its object on a surface region (On) that another atom of the goal also fills:
+    the objects need spots of their own. Any other region is aimed at its centre (a spot beside
+    what stands in a small region lands the object on its edge)."""
+    t = self.tasks[k]
+    return t.site >= 0 and t.atom.test == "on_region" and any(
+        isinstance(u, Task) and u.site == t.site and u.body != t.body for j, u in enumerate(self.tasks) if j != k)
+
   def _spot(self, k: int, ids: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
     """[n, 2] where in its region (- the region's centre) an object is placed: the point of a grid
     over the region (its body kept SPOT_MARGIN inside) with the most room (up to SPOT_ROOM)
@@ -421,7 +429,7 @@ class Expert:
         sel = ids[start]
         self.goal_ori[sel], self.grasp_xy[sel], self.opening[sel] = self._grasp_plan(
             t, sel, hand_mat[sel], centre[start], grasp_z[start])
-        self.spot[sel] = self._spot(k, sel, lo[start], hi[start]) if t.site >= 0 else 0.0
+        self.spot[sel] = self._spot(k, sel, lo[start], hi[start]) if self._shared(k) else 0.0
         place_xy[start] = self._target(t, sel)[0]
       grasp_xy = centre[:, :2] + self.grasp_xy[ids]
       carry_z = self.carry_z[ids]
