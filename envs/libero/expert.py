@@ -70,6 +70,11 @@ RELEASE_STEPS = 8
 STILL_SPEED, STILL_STEPS = 0.001, 5  # m per step: a lowered object this slow for this many steps rests
 PHASE_LIMIT = 60  # control steps before a phase gives up waiting and moves on
 HOLD_STEPS = 10  # control steps (0.5 s) the goal must keep holding after the expert is done
+EMPTY_GAP = 0.004  # m: fingers this close together after closing hold nothing (the grasp missed)
+TRAVERSE_CLEARANCE = 0.04  # m the hand's grip site keeps above what stands along its way to the next grasp
+TRAVERSE_NEAR = 0.03  # m: this close (horizontally) to the grasp point the hand descends to the clearance height
+SPOT_MARGIN = 0.02  # m: a spot in a region keeps the object's body this far inside the region's edge
+SPOT_ROOM = 0.015  # m of room beyond the object's footprint from what stands in the region: more is as good
 
 
 @dataclasses.dataclass(frozen=True)
@@ -205,6 +210,11 @@ class Expert:
     self.hand_z = np.zeros(n)  # the hand's height at the previous step
     self.still = np.zeros(n, np.int64)  # steps the hand has held still while lowering
     self.from_articulated = np.zeros(n, bool)  # handed over by an articulated step, the hand still turning back
+    # the pick passes over what stands on its way (`_path_top`), except right after an articulated
+    # step: the hand has backed off its fixture, and climbing over the opened cabinet costs the time
+    # a drawer-then-place goal does not have (LIBERO-Goal 3)
+    self.traverse = np.ones(n, bool)
+    self.spot = np.zeros((n, 2))  # where in a region the object's centre goes - the region's centre
     self._finger_q = [j["qposadr"] for j in meta["robot"]["gripper_joints"]]
     self.gap = np.zeros(n)  # the fingers' opening at the previous step
     self.articulated = articulated.Articulated(self, steps)
@@ -229,8 +239,8 @@ class Expert:
     site = a["site_xpos"][ids, t.site]
     size = np.asarray(t.atom.size)
     if t.atom.test == "in_region":  # the object's centre into the box: aim at its middle
-      return site[:, :2], site[:, 2]
-    return site[:, :2], site[:, 2] + size[2]
+      return site[:, :2] + self.spot[ids], site[:, 2]
+    return site[:, :2] + self.spot[ids], site[:, 2] + size[2]
 
   def _grasp_plan(self, t: Task, ids: np.ndarray, hand_mat: np.ndarray, centre: np.ndarray, grasp_z: np.ndarray,
                   at_rest: np.ndarray | None = None):
@@ -337,6 +347,77 @@ class Expert:
     pull = pull / np.maximum(np.linalg.norm(pull, axis=-1, keepdims=True), 1e-9)
     return np.where(under.any(1)[:, None], pull * ESCAPE, 0.0)
 
+  def _standing(self, t: Task, ids: np.ndarray):
+    """(centre [n, g, 3], rotation [n, g, 3, 3], half [g, 3], top [n, g], bottom [n, g]) of the
+    colliding boxes of every object but `t`'s, in the world."""
+    o, a = self._obstacles, self.batch.data
+    keep = o["owner"] != t.body
+    bmat = a["xmat"][ids[:, None], o["body"][keep]].reshape(len(ids), -1, 3, 3)
+    gpos = a["xpos"][ids[:, None], o["body"][keep]] + np.einsum("bgij,gj->bgi", bmat, o["centre"][keep])
+    gmat = np.einsum("bgij,gjk->bgik", bmat, o["rot"][keep])
+    half = o["half"][keep]
+    reach = np.einsum("bgj,gj->bg", np.abs(gmat[:, :, 2]), half)
+    return gpos, gmat, half, gpos[..., 2] + reach, gpos[..., 2] - reach
+
+  @staticmethod
+  def _flat_distance(points: np.ndarray, gpos: np.ndarray, gmat: np.ndarray, half: np.ndarray) -> np.ndarray:
+    """[n, p, g] horizontal distances from points [n, p, 2] to boxes (at their centres' heights)."""
+    diff = np.concatenate([points[:, :, None] - gpos[:, None, :, :2], np.zeros(points.shape[:2] + (gpos.shape[1], 1))], -1)
+    local = np.einsum("bgji,bpgj->bpgi", gmat, diff)
+    return np.linalg.norm(np.maximum(np.abs(local) - half, 0.0), axis=-1)
+
+  def _path_top(self, t: Task, ids: np.ndarray, start: np.ndarray, end: np.ndarray) -> np.ndarray:
+    """[n] the highest top of what stands within the palm's reach of the hand's way from `start` to
+    `end` [n, 2] (a basket just filled, beside the next object): the hand passes over it, not
+    through its wall dragging it along."""
+    gpos, gmat, half, top, _ = self._standing(t, ids)
+    frac = np.linspace(0.0, 1.0, 8)
+    points = start[:, None] + frac[None, :, None] * (end - start)[:, None]
+    near = (self._flat_distance(points, gpos, gmat, half) < PALM_HALF_LENGTH).any(1)  # [n, g]
+    return np.where(near, top, -np.inf).max(-1)
+
+  def _shared(self, k: int) -> bool:
+    """Atom k puts its object on a surface region (On) that another atom of the goal also fills:
+    the objects need spots of their own. Any other region is aimed at its centre (a spot beside
+    what stands in a small region lands the object on its edge)."""
+    t = self.tasks[k]
+    return t.site >= 0 and t.atom.test == "on_region" and any(
+        isinstance(u, Task) and u.site == t.site and u.body != t.body for j, u in enumerate(self.tasks) if j != k)
+
+  def _spot(self, k: int, ids: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
+    """[n, 2] where in its region (- the region's centre) an object is placed: the point of a grid
+    over the region (its body kept SPOT_MARGIN inside) with the most room (up to SPOT_ROOM)
+    between the object's footprint and what already stands there (a moka pot on the stove).
+    The region's centre is preferred, unless a later atom puts another object onto the same
+    surface: then its corners (room left for the next one). In a container the centre stays
+    preferred (an object lowered against a basket's wall drags the basket along)."""
+    a, t = self.batch.data, self.tasks[k]
+    size = np.abs(a["site_xmat"][ids, t.site].reshape(-1, 3, 3)[:, :2, :2]) @ np.asarray(t.atom.size)[:2]
+    centre = (lo + hi) / 2
+    body = np.abs(a["xpos"][ids, t.body, :2] - centre[:, :2])  # the test reads the body's position
+    free = np.maximum(size - SPOT_MARGIN - body, 0.0)  # [n, 2]
+    grid = np.linspace(-1.0, 1.0, 5)
+    frac = np.stack(np.meshgrid(grid, grid), -1).reshape(-1, 2)  # [c, 2]
+    offsets = frac[None] * free[:, None]  # [n, c, 2]
+    site = a["site_xpos"][ids, t.site]
+    place_top = site[:, 2] + (np.asarray(t.atom.size)[2] if t.atom.test == "on_region" else 0.0)
+    gpos, gmat, half, top, bottom = self._standing(t, ids)
+    height = hi[:, 2] - lo[:, 2]
+    # what stands in the band the object will occupy (not the stove's burner, nor a roof above it)
+    surface = place_top if t.atom.test == "on_region" else site[:, 2] - np.asarray(t.atom.size)[2]  # a box's floor
+    band = (top > surface[:, None] + 0.005) & (bottom < surface[:, None] + height[:, None])
+    g = np.linspace(-0.5, 0.5, 5)
+    foot = np.stack(np.meshgrid(g, g), -1).reshape(-1, 2)[None] * (hi - lo)[:, None, :2]  # [n, f, 2]
+    points = site[:, None, None, :2] + offsets[:, :, None] + foot[:, None]  # [n, c, f, 2]
+    n, c = offsets.shape[:2]
+    dist = self._flat_distance(points.reshape(n, -1, 2), gpos, gmat, half).reshape(n, c, -1, gpos.shape[1])
+    room = np.where(band[:, None, None], dist, 1.0).min(axis=(2, 3))  # [n, c]
+    later = t.atom.test == "on_region" and any(isinstance(u, Task) and u.site == t.site and u.body != t.body
+                                               for u in self.tasks[k + 1:])
+    spread = np.linalg.norm(offsets, axis=-1)
+    score = np.minimum(room, SPOT_ROOM) + (0.01 if later else -0.01) * spread / max(float(free.max()), 1e-3)
+    return offsets[np.arange(n), np.argmax(score, axis=1)]
+
   # ---------------------------------------------------------------- one control step
 
   def act(self) -> np.ndarray:
@@ -365,7 +446,10 @@ class Expert:
         ref = np.where(rest[:, None, None], self.articulated.down, hand_mat[sel])
         self.goal_ori[sel], self.grasp_xy[sel], self.opening[sel] = self._grasp_plan(
             t, sel, ref, centre[start], grasp_z[start], rest)
+        self.traverse[sel] = ~rest
         self.from_articulated[sel] = False
+        self.spot[sel] = self._spot(k, sel, lo[start], hi[start]) if self._shared(k) else 0.0
+        place_xy[start] = self._target(t, sel)[0]
       grasp_xy = centre[:, :2] + self.grasp_xy[ids]
       carry_z = self.carry_z[ids]
       tgt = hand[ids].copy()
@@ -376,6 +460,10 @@ class Expert:
                         np.where(gap[ids[sel]] < width - OPENING_TOLERANCE, -1.0, 0.0))
       sel = phase == ABOVE
       tgt[sel] = np.c_[grasp_xy[sel], hi[sel, 2] + CLEARANCE]
+      far = sel & self.traverse[ids] & (np.linalg.norm(grasp_xy - hand[ids, :2], axis=-1) > TRAVERSE_NEAR)
+      if far.any():  # over what stands on the way, then down
+        tgt[far, 2] = np.maximum(tgt[far, 2], self._path_top(t, ids[far], hand[ids[far], :2], grasp_xy[far])
+                                 + TRAVERSE_CLEARANCE)
       sel = phase == DESCEND
       tgt[sel] = np.c_[grasp_xy[sel], grasp_z[sel]]
       sel = phase == CLOSE
@@ -435,6 +523,11 @@ class Expert:
       lifted = done & (phase == LIFT)
       self.offset[ids[lifted]] = centre[lifted] - hand[ids[lifted]]
       nxt = np.where(done, phase + 1, phase)
+      # a grasp across the object that closed on nothing (the fingers landed on a neighbour's edge)
+      # starts over from above (not a rim grasp: a bowl's 3 mm wall leaves the fingers as close)
+      missed = (phase == LIFT) & (count > 3) & (gap[ids] < EMPTY_GAP) & (t.rim is None)
+      done |= missed
+      nxt = np.where(missed, ABOVE, nxt)
       last = nxt == DONE
       more = last & (k + 1 < len(self.tasks))  # next atom
       self.task[ids[more]] = k + 1
