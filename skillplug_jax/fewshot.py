@@ -31,9 +31,14 @@ def units(plan: FewShot) -> list[tuple[str, tuple[str, ...]]]:
   """(what one fine-tune trains on, the tasks it is evaluated on) for each fine-tune of `plan`:
   each task of its taskset (`per="task"`), or each comma-separated part of it, all of that part's
   tasks at once (`per="taskset"`: a LIBERO suite)."""
+  from envs import toy_skills  # the toy's tasksets (envs/toy_skills.py) are not the tabletop's
+
+  def tasks(part: str) -> tuple[str, ...]:
+    return tuple(toy_skills.TASKSETS.get(part) or envs.taskset(part))
+
   if plan.per == "taskset":
-    return [(part, tuple(envs.taskset(part))) for part in plan.taskset.split(",")]
-  return [(t, (t,)) for part in plan.taskset.split(",") for t in envs.taskset(part)]
+    return [(part, tasks(part)) for part in plan.taskset.split(",")]
+  return [(t, (t,)) for part in plan.taskset.split(",") for t in tasks(part)]
 
 
 def fewshot_config(source: TrainConfig, source_dir: Path, task: str, plan: FewShot, variant: str = "") -> TrainConfig:
