@@ -92,13 +92,18 @@ def variant_rows(exp: Experiment, summary: dict) -> list[dict]:
   return out
 
 
+def _in_name(task: str) -> str:
+  """A task's name as part of a file name: LIBERO's `libero_object:3` as `libero_object_3`."""
+  return task.replace(":", "_")
+
+
 def routing_file(r: dict) -> Path | None:
   """Where a result's routing array is: beside its run, or (a reference's) where it was published."""
   if r.get("routing_file") and Path(r["routing_file"]).exists():
     return Path(r["routing_file"])
   if r.get("reference"):
     published = Path(r["reference"]).parent / "routing" / (
-        f"{r['config']['model.policy']}_seed{r['train_seed']}_pretrain_{r['task']}.npz")
+        f"{r['config']['model.policy']}_seed{r['train_seed']}_pretrain_{_in_name(r['task'])}.npz")
     return published if published.exists() else None
   return None
 
@@ -218,7 +223,7 @@ def publish(summary: dict, text: str, dest: Path) -> None:
       if not r.get("routing_file") or r.get("reference"):  # a reference's arrays are where it was published
         continue
       arm = f"{r['variant']}_" if r.get("variant") else ""
-      name = f"{arm}{r['config']['model.policy']}_seed{r['train_seed']}_{stage}_{r['task']}.npz"
+      name = f"{arm}{r['config']['model.policy']}_seed{r['train_seed']}_{stage}_{_in_name(r['task'])}.npz"
       tmp = dest / "routing" / (name + ".tmp")
       shutil.copyfile(r["routing_file"], tmp)
       tmp.replace(dest / "routing" / name)
