@@ -1,60 +1,29 @@
 """make libero-cpu-image   (python -m experiments.pipeline --config libero_cpu_image --out results/libero_cpu_image)
 
-`libero_cpu` with the paper's modality: not yet run, for its cost on this
+`libero_cpu` (its arms, demonstrations, seeds and few-shot step) with the
+paper's modality: both cameras (agentview, eye in hand) at 64x64 through the
+`cpu_image` backbone (a small ResNet with GroupNorm, stem width 16, three
+stages of one block: sized by measurement on DISCOVERSE, not searched on
+LIBERO), beside LIBERO's proprioception and the instruction; 20 paired
+trials per task (the benchmark's init states 0-19, the same for every arm;
+LIBERO's protocol has 50: the CPU budget). Not yet run, for its cost on this
 CPU. Measured 2026-12-07 (docs/measurements/libero.md): one 64x64 LIBERO
 camera image costs about 38 ms of software GL on the 2-core VM (the scenes'
 meshes, not the pixels, set it), so the 500 demonstrations of one suite take
-about 4 hours and one policy's 500 trials of LIBERO-10 about 3. Both cameras (agentview, eye in hand) at 64x64
-through the `cpu_image` backbone (a small ResNet with GroupNorm, stem width
-16, three stages of one block: sized by measurement on DISCOVERSE, not
-searched on LIBERO), LIBERO's proprioception (16 numbers), the instruction
-as an encoder token learned from scratch (data/language.py), K = 8 as the
-paper's LIBERO runs. Demonstrations are our scripted experts', 50 per task
-as LIBERO's count (LIBERO's own are human teleoperations, on a hub we
-cannot reach: ours are smoother and more alike than a person's).
-3 seeds; 20 paired trials per task (the benchmark's init states 0-19, the
-same for every arm; LIBERO's protocol has 50: the CPU budget).
-
-Arms (each trains its own runs unless it adapts another's):
-  long     multi-task on LIBERO-10 (the paper's "Long"), then the paper's
-           few-shot step: per target suite (Object, Goal, Spatial) one
-           fine-tune on all its tasks from 5 demonstrations per task
-           (`fewshot.per=taskset`), 2,000 steps: ACT+SkillPlug its router
-           and action head, ACT its action head
-  object, goal, spatial   multi-task on that suite alone (no few-shot)
-  long_act_adapter   (ours) ACT's runs of `long`, fine-tuned with its action
-           head and an adapter of the router's size (width 35: 4,707
-           parameters against the router's 4,680 at K = 8), so that a gain
-           of the plug can be told from extra tuned capacity
+about 4 hours and one policy's 500 trials of LIBERO-10 about 3.
 
 Run one arm at a time with `make libero-cpu-image VARIANTS=long` (it resumes).
 """
 
-from skillplug_jax.experiment import Experiment, FewShot, Variant
-from skillplug_jax.model import ModelConfig, PlugConfig
-from skillplug_jax.train.config import TrainConfig
+import dataclasses
+from pathlib import Path
 
-LIBERO_PROPRIO = ("joint_pos", "gripper_qpos", "eef_pos", "eef_quat")
-ADAPTER = "model.adapter_width=35"  # 129 w + 192 parameters at hidden 64: 4,707 (the router: 4,680)
+from skillplug_jax.experiment import Experiment, load
 
 
 def get_config() -> Experiment:
-  model = ModelConfig(use_images=True, cameras=("agentview", "eye_in_hand"), image_size=(64, 64),
-                      backbone_width=16, backbone_stages=(1, 1, 1), proprio=LIBERO_PROPRIO, joint_dim=16,
-                      instruction_vocab=128, hidden=64, heads=4, ff=256, enc_layers=2, dec_layers=2,
-                      cvae_enc_layers=1, plug=PlugConfig(num_skills=8, skill_latent_dim=16, alignment_dim=32))
-  train = TrainConfig(preset="libero_cpu_image", model=model, taskset="libero_10", demos=50, backend="mujoco",
-                      batch_size=32, lr=1e-3, warmup_steps=200, lr_schedule="cosine", max_steps=10_000,
-                      log_every=100, ckpt_every=1000)
-  fewshot = FewShot(taskset="libero_object,libero_goal,libero_spatial", per="taskset", demos=5, steps=2000)
-  return Experiment(
-      train=train, seeds=(0, 1, 2), trials=20, eval_batch=20, fewshot=fewshot,
-      variants=(
-          Variant("long", (), "multi-task on LIBERO-10, then 5-shot per suite"),
-          Variant("object", ("train.taskset=libero_object", "run_fewshot=false"), "multi-task on LIBERO-Object"),
-          Variant("goal", ("train.taskset=libero_goal", "run_fewshot=false"), "multi-task on LIBERO-Goal"),
-          Variant("spatial", ("train.taskset=libero_spatial", "run_fewshot=false"), "multi-task on LIBERO-Spatial"),
-          Variant("long_act_adapter", ("policies=act", "fewshot.trainable.act=action_head,adapter",
-                                       f"fewshot.train_overrides={ADAPTER}"),
-                  "ACT, action head + adapter of the router's size (ours)", adapts="long"),
-      ))
+  exp = load("libero_cpu", Path(__file__).parent)
+  model = dataclasses.replace(exp.train.model, use_images=True, cameras=("agentview", "eye_in_hand"),
+                              image_size=(64, 64), backbone_width=16, backbone_stages=(1, 1, 1))
+  train = dataclasses.replace(exp.train, preset="libero_cpu_image", model=model)
+  return dataclasses.replace(exp, train=train, trials=20, eval_batch=20)
