@@ -90,6 +90,23 @@ def test_the_suite_table_averages_tasks_per_seed_then_suites():
   assert "| p | 50.0 ± 0.0 | 100.0 ± 0.0 | 75.0 ± 0.0 |" in libero_eval.markdown(table)
 
 
+def test_the_papers_rows_stand_beside_ours_in_our_columns():
+  rates = {"p": {"libero_object:0": [1.0], "libero_goal:0": [0.5], "libero_10:0": [0.0]}}
+  table = libero_eval.suite_table(rates, list(rates["p"]))
+  fewshot = libero_eval.markdown(table, paper="fewshot").splitlines()
+  # the paper's few-shot table has no Long column, so no average over our three suites
+  assert fewshot[-1] == "| paper: OpenVLA-OFT+SkillPlug | 79.6 ± 1.6 | 83.2 ± 1.7 | - | - |"
+  assert fewshot[2] == "| p | 100.0 | 50.0 | 0.0 | 50.0 |"  # one seed: no SE
+  goal_and_object = libero_eval.suite_table({"p": {k: rates["p"][k] for k in ("libero_object:0", "libero_goal:0")}},
+                                            ["libero_object:0", "libero_goal:0"])
+  rows = libero_eval.markdown(goal_and_object, paper="fewshot").splitlines()
+  assert rows[-2] == "| paper: OpenVLA-OFT | 47.4 ± 2.1 | 45.4 ± 2.2 | 46.4 |"
+  multi = libero_eval.markdown(table, paper="pretrain").splitlines()
+  assert multi[-2] == "| paper: OpenVLA-OFT | 97.6 ± 0.6 | 96.5 ± 0.9 | 92.9 ± 1.2 | 95.7 |"
+  with pytest.raises(ValueError, match="stages pretrain, fewshot"):
+    libero_eval.markdown(table, paper="posttrain")
+
+
 def test_trial_i_starts_from_the_benchmarks_init_state_i(monkeypatch):
   seen = []
   original = engine.LiberoBatch.reset

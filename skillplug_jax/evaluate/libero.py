@@ -26,6 +26,18 @@ from envs.rollout import Controller
 from skillplug_jax.evaluate import protocol, tables
 
 MEASURES = ("libero_success", "success")  # LIBERO's rule, ours
+# The paper's LIBERO table (tab:libero_oft_mt: OpenVLA-OFT, K = 8, 3 seeds, 50 trials per task, mean
+# and SE %), by stage: multi-task per suite; few-shot after pretraining on Long, 5 demos per task.
+# Its backbone is a 7B vision-language-action model trained on LIBERO's human demonstrations, with
+# images; ours is a small ACT on our scripted demonstrations: these rows stand beside ours, they are
+# not the same experiment.
+PAPER = {
+    "pretrain": {"OpenVLA-OFT": {"Long": (92.9, 1.2), "Object": (97.6, 0.6), "Goal": (96.5, 0.9), "Spatial": (96.4, 0.8)},
+                 "OpenVLA-OFT+SkillPlug": {"Long": (93.5, 1.1), "Object": (97.8, 0.7), "Goal": (96.7, 0.9),
+                                           "Spatial": (95.6, 0.7)}},
+    "fewshot": {"OpenVLA-OFT": {"Object": (47.4, 2.1), "Goal": (45.4, 2.2), "Spatial": (42.0, 2.4)},
+                "OpenVLA-OFT+SkillPlug": {"Object": (79.6, 1.6), "Goal": (83.2, 1.7), "Spatial": (86.8, 2.0)}},
+}
 
 
 def evaluate_task(name: str, controller: Controller, trials: int = suites.INIT_STATES_PER_TASK, videos: int = 0,
@@ -141,14 +153,22 @@ def suite_table(rates: Mapping[str, Mapping[str, Sequence[float]]], tasks: Seque
   return {"suites": titles, "tasks": {suites.TITLES[s]: ts for s, ts in by_suite.items()}, "rows": rows}
 
 
-def markdown(table: dict) -> str:
-  """A per-suite table (`suite_table`) as markdown: mean +- SE (%), the SE left out for one seed."""
+def markdown(table: dict, paper: str | None = None) -> str:
+  """A per-suite table (`suite_table`) as markdown: mean +- SE (%), the SE left out for one seed.
+  With `paper` ("pretrain" or "fewshot") the paper's rows of that stage follow ours, in the same
+  columns ("-" where it reports none; its Avg. is the mean of its suites', with no SE, when it
+  reports every suite of ours)."""
   cols = table["suites"] + ["Avg."]
   lines = ["| policy | " + " | ".join(cols) + " |", "|---|" + "---|" * len(cols)]
+  fmt = lambda mean, se: f"{mean:.1f}" if se is None else f"{mean:.1f} ± {se:.1f}"
   for policy, row in table["rows"].items():
-    cells = []
-    for c in cols:
-      mean, se = row["cells"][c]
-      cells.append(f"{mean:.1f}" if se is None else f"{mean:.1f} ± {se:.1f}")
-    lines.append(f"| {policy} | " + " | ".join(cells) + " |")
+    lines.append(f"| {policy} | " + " | ".join(fmt(*row["cells"][c]) for c in cols) + " |")
+  if paper is not None:
+    if paper not in PAPER:
+      raise ValueError(f"the paper's LIBERO table has stages {', '.join(PAPER)}, not {paper!r}")
+    for policy, row in PAPER[paper].items():
+      cells = [fmt(*row[c]) if c in row else "-" for c in table["suites"]]
+      full = all(c in row for c in table["suites"])
+      cells.append(f"{np.mean([row[c][0] for c in table['suites']]):.1f}" if full else "-")
+      lines.append(f"| paper: {policy} | " + " | ".join(cells) + " |")
   return "\n".join(lines)
