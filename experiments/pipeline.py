@@ -304,12 +304,18 @@ def run(exp: Experiment, out: Path, configs: Path | None = None) -> dict:
     stages.update({f"{name + ' ' if name else ''}{p} seed {s} {k}": v for k, v in part["stages_s"].items()})
   ref = {stage: publish.reference_results(exp.reference, stage) if exp.reference else []
          for stage in ("pretrain", "fewshot")}
+  # arms may train on different suites (libero_cpu): a row is evaluated on its own training taskset
+  trained = [arm for _, arm, _ in by_arm if arm.seeds and arm.policies]
+  pretrain_tasks = tuple(dict.fromkeys(t for arm in trained for t in tasks_of(arm.train.taskset)))
+  fewshot_tasks = tuple(dict.fromkeys(t for arm in trained if arm.run_fewshot for t in tasks_of(arm.fewshot.taskset)))
   summary = dict(config=exp.train.preset, command=exp.command, experiment=dataclasses.asdict(exp),
-                 pretrain=publish.merged_summary(parts, "pretrain", tasks_of(exp.train.taskset), ref["pretrain"]),
+                 pretrain=publish.merged_summary(parts, "pretrain", pretrain_tasks, ref["pretrain"],
+                                                 row_tasks=lambda key: tasks_of(key["taskset"])),
                  stages_s=stages, wall_s=round(time.time() - t_start, 1), device=str(jax.devices()[0]),
                  backend=exp.train.backend, runs=[part["run"] for part in parts])
   if any(part["fewshot"] for part in parts):
-    summary["fewshot"] = publish.merged_summary(parts, "fewshot", tasks_of(exp.fewshot.taskset), ref["fewshot"])
+    summary["fewshot"] = publish.merged_summary(parts, "fewshot", fewshot_tasks or tasks_of(exp.fewshot.taskset),
+                                                ref["fewshot"])
   if exp.variants:
     summary["variants"] = publish.variant_rows(exp, summary)
   if any("toy" in part for part in parts):

@@ -18,21 +18,35 @@ from skillplug_jax.evaluate import groups, tables
 from skillplug_jax.experiment import Experiment
 
 
-def merged_summary(parts: list[dict], key: str, tasks, reference: list[dict] = ()) -> dict:
+def merged_summary(parts: list[dict], key: str, tasks, reference: list[dict] = (), row_tasks=None) -> dict:
   """The jobs' results of one stage (and the reference's) and their tables: rows group every job's runs.
+  row_tasks: a row's training key -> its tasks, where arms train on different suites (`tables.summarise`).
   On LIBERO's tasks also the paper's per-suite tables, by LIBERO's rule and by ours (`libero`)."""
   results = [groups.normalised_result(r) for r in list(reference) + [r for part in parts for r in part[key]]]
-  out = dict(results=results, **tables.summarise(results, tasks))
+  out = dict(results=results, **tables.summarise(results, tasks, row_tasks))
   if all("libero_success_rate" in r for r in results) and results:
     out["libero"] = libero_tables(out, tasks)
   return out
 
 
+# What tells the paper's LIBERO rows apart is the policy, not the suite trained on: an arm per suite
+# is a column of one row (its Multi-task table), so the suite is left out of the row's key.
+SUITE_FIELDS = ("taskset", "data_taskset")
+
+
 def libero_tables(stage: dict, tasks) -> dict:
-  """A LIBERO stage's tables (`evaluate.libero.tables_of`) for both rules, a row per table row."""
+  """A LIBERO stage's tables (`evaluate.libero.tables_of`) for both rules: a row per training
+  key less the suite trained on (`SUITE_FIELDS`), so the arms of one policy, one per suite, are one row."""
   from skillplug_jax.evaluate import libero
-  name_of = {groups.key_id(row["config"]): name for name, row in stage["rows"].items()}
-  rows = [dict(r, policy=name_of[groups.key_id(r["config"])], seed=r["train_seed"]) for r in stage["results"]]
+  keys, changes = {}, {}
+  for row in stage["rows"].values():
+    k = {f: v for f, v in row["config"].items() if f not in SUITE_FIELDS}
+    keys.setdefault(groups.key_id(k), k)
+    changes.setdefault(groups.key_id(k), {f: v for f, v in row["overrides"].items() if f not in SUITE_FIELDS})
+  name_of = dict(zip(keys, groups.row_names(list(keys.values()), [changes[i] for i in keys])))
+  def policy(config):
+    return name_of[groups.key_id({f: v for f, v in config.items() if f not in SUITE_FIELDS})]
+  rows = [dict(r, policy=policy(r["config"]), seed=r["train_seed"]) for r in stage["results"]]
   return {m: libero.tables_of(rows, tasks, m) for m in libero.MEASURES}
 
 

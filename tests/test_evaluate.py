@@ -383,6 +383,42 @@ def test_rows_are_training_configurations_and_seeds_aggregate():
     tables.summarise(_three_configurations() + _three_configurations()[:1], TASKS2)
 
 
+def test_arms_on_different_suites_are_rows_on_their_own_tasks():
+  jp = _run_results("act", 0, {"jujube_pick": ([1, 1, 0, 1], [10, 20, 99, 30])}, "taskset=jujube_pick")
+  do = (_run_results("act", 0, {"drawer_open": ([1, 0, 0, 0], [40, 99, 99, 99])}, "taskset=drawer_open")
+        + _run_results("act", 1, {"drawer_open": ([1, 1, 0, 0], [40, 50, 99, 99])}, "taskset=drawer_open"))
+  own = lambda key: (key["taskset"],)
+  out = tables.summarise(jp + do, TASKS2, row_tasks=own)
+  a, b = "ACT (taskset=jujube_pick)", "ACT (taskset=drawer_open)"
+  assert out["table"]["rows"][a]["cells"] == {"jujube_pick": (75.0, None), "drawer_open": None, "Avg.": (75.0, None)}
+  assert out["table"]["rows"][b]["cells"]["jujube_pick"] is None
+  assert out["table"]["rows"][b]["cells"]["Avg."] == (pytest.approx(37.5), pytest.approx(12.5))
+  assert f"| {a} | 75.0 | - | 75.0 |" in tables.markdown(out["table"])
+  # paired trials are those of the rows that ran the task
+  assert out["queries_paired"]["paired_trials"] == {"jujube_pick": 3, "drawer_open": 1}
+  # without row_tasks every row must cover every task; with it, every seed its own tasks
+  with pytest.raises(ValueError, match="have no result on drawer_open"):
+    tables.summarise(jp + do, TASKS2)
+  with pytest.raises(ValueError, match=r"seed\(s\) \[1\] have no result on drawer_open"):
+    tables.summarise(jp + do[:1] + _run_results("act", 1, {"jujube_pick": ([1], [1])}, "taskset=drawer_open"),
+                     TASKS2, row_tasks=own)
+
+
+def test_libero_arms_one_per_suite_are_one_row_of_the_papers_table():
+  from experiments import publish
+  tasks = ["libero_object:0", "libero_goal:0"]
+  results = []
+  for suite, task, rate in (("libero_object", tasks[0], [1, 1, 0, 0]), ("libero_goal", tasks[1], [1, 0, 0, 0])):
+    for r in _run_results("act", 0, {task: (rate, [5] * 4)}, f"taskset={suite}"):
+      results.append(dict(r, libero_success_rate=r["success_rate"]))
+  stage = publish.merged_summary([dict(pretrain=results)], "pretrain", tasks,
+                                 row_tasks=lambda key: envs.taskset(key["taskset"])[:1])
+  assert len(stage["rows"]) == 2  # two training keys (suites) ...
+  per_suite = stage["libero"]["libero_success"]["per_suite"]
+  assert list(per_suite["rows"]) == ["ACT"]  # ... one row of the paper's table, a column per suite
+  assert per_suite["rows"]["ACT"]["cells"] == {"Object": (50.0, None), "Goal": (25.0, None), "Avg.": (37.5, None)}
+
+
 def test_queries_tables_per_seed_and_over_paired_trials():
   out = tables.summarise(_three_configurations(), TASKS2)
   k4, k2 = "ACT+SkillPlug (num_skills=4)", "ACT+SkillPlug (num_skills=2)"

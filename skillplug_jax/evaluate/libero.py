@@ -117,8 +117,8 @@ def report(out: dict) -> str:
       lines += ["| policy | " + " | ".join(cols) + " |", "|---|" + "---|" * len(cols)]
       for policy, row in per_task["rows"].items():
         cells = [row["cells"][c] for c in per_task["tasks"]] + [row["cells"]["Avg."]]
-        lines.append(f"| {policy} | " + " | ".join(f"{m:.0f}" if se is None else f"{m:.0f} ± {se:.0f}"
-                                                   for m, se in cells) + " |")
+        lines.append(f"| {policy} | " + " | ".join("-" if c is None else f"{c[0]:.0f}" if c[1] is None
+                                                   else f"{c[0]:.0f} ± {c[1]:.0f}" for c in cells) + " |")
       lines.append("")
   return "\n".join(lines)
 
@@ -138,17 +138,20 @@ def tables_of(results: Sequence[dict], tasks: Sequence[str], measure: str = "lib
 
 def suite_table(rates: Mapping[str, Mapping[str, Sequence[float]]], tasks: Sequence[str]) -> dict:
   """The paper's LIBERO layout: a row per policy, a column per suite (its tasks' mean success,
-  computed per seed) and `Avg.` over the suites, each mean +- SE over seeds (%)."""
+  computed per seed) and `Avg.` over the suites, each mean +- SE over seeds (%). A row without
+  some suite (trained on others) has None there and no Avg."""
   by_suite: dict = {}
   for t in tasks:
     by_suite.setdefault(suites.parse(t).suite, []).append(t)
   titles = [suites.TITLES[s] for s in by_suite]
   rows = {}
   for policy, per_task in rates.items():
-    n = len(per_task[tasks[0]])
-    suite_means = {s: [100 * float(np.mean([per_task[t][k] for t in ts])) for k in range(n)] for s, ts in by_suite.items()}
-    cells = {suites.TITLES[s]: tables.mean_se(v) for s, v in suite_means.items()}
-    cells["Avg."] = tables.mean_se([float(np.mean([suite_means[s][k] for s in by_suite])) for k in range(n)])
+    mine = {s: ts for s, ts in by_suite.items() if all(t in per_task for t in ts)}
+    n = len(per_task[next(iter(mine.values()))[0]]) if mine else 0
+    suite_means = {s: [100 * float(np.mean([per_task[t][k] for t in ts])) for k in range(n)] for s, ts in mine.items()}
+    cells = {suites.TITLES[s]: tables.mean_se(suite_means[s]) if s in mine else None for s in by_suite}
+    cells["Avg."] = (tables.mean_se([float(np.mean([suite_means[s][k] for s in by_suite])) for k in range(n)])
+                     if len(mine) == len(by_suite) else None)
     rows[policy] = {"cells": cells, "seeds": n}
   return {"suites": titles, "tasks": {suites.TITLES[s]: ts for s, ts in by_suite.items()}, "rows": rows}
 
@@ -162,7 +165,8 @@ def markdown(table: dict, paper: str | None = None) -> str:
   lines = ["| policy | " + " | ".join(cols) + " |", "|---|" + "---|" * len(cols)]
   fmt = lambda mean, se: f"{mean:.1f}" if se is None else f"{mean:.1f} ± {se:.1f}"
   for policy, row in table["rows"].items():
-    lines.append(f"| {policy} | " + " | ".join(fmt(*row["cells"][c]) for c in cols) + " |")
+    lines.append(f"| {policy} | " + " | ".join("-" if row["cells"][c] is None else fmt(*row["cells"][c])
+                                               for c in cols) + " |")
   if paper is not None:
     if paper not in PAPER:
       raise ValueError(f"the paper's LIBERO table has stages {', '.join(PAPER)}, not {paper!r}")

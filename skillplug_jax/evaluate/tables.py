@@ -16,7 +16,7 @@ credited with few queries for solving only the easy starts.
 from __future__ import annotations
 
 import math
-from typing import Any, Mapping, Sequence
+from typing import Any, Callable, Mapping, Sequence
 
 import numpy as np
 
@@ -48,15 +48,20 @@ def abbr(task: str) -> str:
 
 
 def success_table(rates: Mapping[str, Mapping[str, Sequence[float]]], tasks: Sequence[str]) -> dict:
-  """rates[policy][task] = success rate (0-1) of each training seed, seeds in the same order."""
+  """rates[policy][task] = success rate (0-1) of each training seed, seeds in the same order. A row
+  may hold some of `tasks` only (an arm trained on another suite): '-' on the others, its Avg. over
+  its own."""
   table = {"tasks": list(tasks), "abbr": [abbr(t) for t in tasks], "rows": {}}
   for policy, per_task in rates.items():
-    seeds = {len(per_task[t]) for t in tasks}
+    own = [t for t in tasks if t in per_task]
+    if not own:
+      raise ValueError(f"{policy}: no result on any of {', '.join(tasks)}")
+    seeds = {len(per_task[t]) for t in own}
     if len(seeds) != 1:
       raise ValueError(f"{policy}: tasks have different numbers of seeds ({sorted(seeds)})")
     n = seeds.pop()
-    row = {t: mean_se([100 * r for r in per_task[t]]) for t in tasks}
-    row["Avg."] = mean_se([100 * sum(per_task[t][s] for t in tasks) / len(tasks) for s in range(n)])
+    row = {t: mean_se([100 * r for r in per_task[t]]) if t in per_task else None for t in tasks}
+    row["Avg."] = mean_se([100 * sum(per_task[t][s] for t in own) / len(own) for s in range(n)])
     table["rows"][policy] = {"cells": row, "seeds": n}
   return table
 
@@ -96,35 +101,40 @@ def queries_table(episodes: Mapping[str, Mapping[str, Sequence[tuple[Sequence[bo
   shared = {}
   if paired:
     for t in tasks:
-      solved = [np.asarray(s, bool) for per_task in episodes.values() for s, _ in per_task[t]]
+      solved = [np.asarray(s, bool) for per_task in episodes.values() if t in per_task for s, _ in per_task[t]]
       if len({len(s) for s in solved}) != 1:
         raise ValueError(f"{t}: runs have different numbers of trials; paired trials need the same")
       shared[t] = np.logical_and.reduce(solved)
     table["paired_trials"] = {t: int(shared[t].sum()) for t in tasks}
     table["trials"] = {t: int(shared[t].size) for t in tasks}
   for name, per_task in episodes.items():
-    seeds = {len(per_task[t]) for t in tasks}
+    own = [t for t in tasks if t in per_task]  # a row may hold some tasks only ('-' on the others)
+    seeds = {len(per_task[t]) for t in own}
     if len(seeds) != 1:
       raise ValueError(f"{name}: tasks have different numbers of seeds ({sorted(seeds)})")
     n = seeds.pop()
-    per_seed = {t: _seed_means(per_task[t], shared.get(t)) for t in tasks}
-    row = {t: _mean_se_or_none(per_seed[t]) for t in tasks}
+    per_seed = {t: _seed_means(per_task[t], shared.get(t)) for t in own}
+    row = {t: _mean_se_or_none(per_seed[t]) if t in per_seed else None for t in tasks}
     avg = []
     for s in range(n):
-      vals = [per_seed[t][s] for t in tasks if per_seed[t][s] is not None]
+      vals = [per_seed[t][s] for t in own if per_seed[t][s] is not None]
       avg.append(sum(vals) / len(vals) if vals else None)
     row["Avg."] = _mean_se_or_none(avg)
-    counts = {t: sum(v is not None for v in per_seed[t]) for t in tasks}
+    counts = {t: sum(v is not None for v in per_seed[t]) if t in per_seed else 0 for t in tasks}
     counts["Avg."] = sum(v is not None for v in avg)
     table["rows"][name] = {"cells": row, "seeds": n, "n": counts}
   return table
 
 
-def summarise(results: Sequence[Mapping[str, Any]], tasks: Sequence[str]) -> dict:
+def summarise(results: Sequence[Mapping[str, Any]], tasks: Sequence[str],
+              row_tasks: Callable[[Mapping[str, Any]], Sequence[str]] | None = None) -> dict:
   """The rows and the three tables from per-(run, task) results.
 
   Each result carries `config` (its training key), `train_seed`, `task`,
-  `success_rate`, `trial_success` and `trial_queries` (`protocol`).
+  `success_rate`, `trial_success` and `trial_queries` (`protocol`). Every
+  seed of a row must have a result on each task the row is evaluated on:
+  all of `tasks`, or, with `row_tasks` (a row's training key -> its tasks;
+  arms that train on different suites), those of `tasks` it names.
   """
   rows = groups.group_rows(results)
   by = {}
@@ -134,10 +144,14 @@ def summarise(results: Sequence[Mapping[str, Any]], tasks: Sequence[str]) -> dic
       raise ValueError(f"{r['task']} was evaluated twice for one configuration and seed "
                        f"{r['train_seed']} ({by[at].get('run')} and {r.get('run')})")
     by[at] = r
-  rates, episodes = {}, {}
+  rates, episodes, own = {}, {}, {}
   for name, row in rows.items():
     i = groups.key_id(row["config"])
-    for t in tasks:
+    mine = set(tasks if row_tasks is None else row_tasks(row["config"]))
+    own[name] = [t for t in tasks if t in mine]
+    if not own[name]:
+      raise ValueError(f"{name}: is evaluated on none of {', '.join(tasks)}")
+    for t in own[name]:
       missing = [s for s in row["seeds"] if (i, s, t) not in by]
       if missing:
         raise ValueError(f"{name}: seed(s) {missing} have no result on {t}")
@@ -146,8 +160,10 @@ def summarise(results: Sequence[Mapping[str, Any]], tasks: Sequence[str]) -> dic
       episodes.setdefault(name, {})[t] = [(r["trial_success"], r["trial_queries"]) for r in per_seed]
   out = dict(rows=rows, table=success_table(rates, tasks), queries=queries_table(episodes, tasks),
              queries_paired=queries_table(episodes, tasks, paired=True))
-  diag = routing_diagnostics({name: {s: [by[(groups.key_id(row["config"]), s, t)] for t in tasks]
-                                     for s in row["seeds"]} for name, row in rows.items()}, tasks)
+  diag = {}
+  for name, row in rows.items():
+    diag.update(routing_diagnostics({name: {s: [by[(groups.key_id(row["config"]), s, t)] for t in own[name]]
+                                            for s in row["seeds"]}}, own[name]))
   if diag:
     out["diagnostics"] = diag
   return out
