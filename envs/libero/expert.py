@@ -10,8 +10,8 @@ floor is set down leaning. Grasp and release heights come from the object's box 
 geoms in its body frame, a task constant) at its current pose. Actions are LIBERO's: the position error
 over the controller's 5 cm scale and the orientation error over its 0.5 rad, clipped to [-1, 1].
 
-Open, Close, TurnOn and TurnOff atoms (drawers, the microwave's door, the stove's knob) and the
-dragged plate are `envs.libero.articulated`'s steps; the order of all steps is its `plan`.
+Open, Close, TurnOn and TurnOff atoms (drawers, the microwave's door, the stove's knob), the
+dragged plate and the mug pushed into the microwave are `envs.libero.articulated`'s steps; the order of all steps is its `plan`.
 `Expert` names an atom neither scripts.
 """
 
