@@ -168,3 +168,16 @@ def test_the_mug_is_pushed_into_the_microwave_by_its_handle_and_the_door_shut():
   assert step.grip_local[0] > 0.06  # the handle's outer bar, 6.4 cm out from the mug's origin
   row = expert.run("libero_10", 9, trials=2, nthread=1)
   assert row["success"] == 1.0, row
+
+
+def test_a_mug_is_released_low_over_the_plates_floor():
+  # LIBERO-10 4: the plate's rim stands 1 cm over its floor. Released 3 cm over the rim, the yellow
+  # and white mug dropped 4 cm, tipped onto the rim and off the plate's middle (On's 3 cm); it is
+  # released RIM_RELEASE_ABOVE over the floor under the plate's centre.
+  b = _settled("libero_10", 4, 1)
+  e = expert.Expert(b)
+  t = e.tasks[1]
+  centre, top = e._target(t, np.arange(1))
+  assert top[0] - e._floor(t, np.arange(1), centre, top)[0] > 0.008
+  row = expert.run("libero_10", 4, trials=3, nthread=1)
+  assert row["success"] == 1.0, row

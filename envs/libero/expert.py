@@ -32,6 +32,8 @@ CLEARANCE = 0.08  # m above the object's top before descending
 GRASP_DEPTH = 0.03  # m below the object's top, at most half its height
 LIFT_CLEARANCE = 0.12  # m above the higher of the object's and the target's tops while carrying
 RELEASE_ABOVE = 0.03  # m between the object's bottom and the target's top (On) when opened
+RIM_RELEASE_ABOVE = 0.015  # m: ... a rim-held object's, over the target's floor under it (a mug over a plate's
+#                            floor, not its rim: dropped 4 cm, it tips onto the rim and off the plate's middle)
 # The Panda hand in the grip site's frame (robosuite's model, measured from its collision geoms):
 # the fingers close along the site's x axis, the palm's bottom is 3.1 cm above the site (its mesh's
 # lowest vertex) and the
@@ -371,6 +373,15 @@ class Expert:
     reach = np.einsum("bgj,gj->bg", np.abs(gmat[:, :, 2]), half)
     return gpos, gmat, half, gpos[..., 2] + reach, gpos[..., 2] - reach
 
+  def _floor(self, t: Task, ids: np.ndarray, xy: np.ndarray, top: np.ndarray) -> np.ndarray:
+    """[n] the height an On(object) target holds an object up to at xy [n, 2]: the highest top of its
+    colliding boxes there (a plate's floor, 1 cm under its rim), or its box's top `top` [n] if none."""
+    gpos, gmat, half, tops, _ = self._standing(t, ids)
+    owner = self._obstacles["owner"][self._obstacles["owner"] != t.body]
+    under = (self._flat_distance(xy[:, None], gpos, gmat, half)[:, 0] < 1e-6) & (owner == t.target_body)
+    floor = np.where(under, tops, -np.inf).max(-1)
+    return np.where(np.isfinite(floor), floor, top)
+
   @staticmethod
   def _flat_distance(points: np.ndarray, gpos: np.ndarray, gmat: np.ndarray, half: np.ndarray) -> np.ndarray:
     """[n, p, g] horizontal distances from points [n, p, 2] to boxes (at their centres' heights)."""
@@ -547,6 +558,8 @@ class Expert:
       below = hand[ids[sel], 2] - lo[sel, 2]  # the hand's height over the object's bottom
       if t.atom.test == "in_region":
         z = place_top[sel] + (hand[ids[sel], 2] - centre[sel, 2])
+      elif t.rim is not None and t.target_body >= 0 and sel.any():  # released low over the dish's floor
+        z = self._floor(t, ids[sel], place_xy[sel], place_top[sel]) + RIM_RELEASE_ABOVE + below
       else:
         z = place_top[sel] + RELEASE_ABOVE + below
       aim = centre[sel, :2] if t.rim is None else self.batch.data["xpos"][ids[sel], t.body, :2]  # a bowl's base
