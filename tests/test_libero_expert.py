@@ -63,6 +63,8 @@ def test_the_plan_opens_before_placing_into_a_drawer_and_closes_after():
   # The stove's knob first, then the moka pot; a plate too wide to grasp is dragged.
   assert [k for k, _ in articulated.plan(_settled("libero_10", 2, 1))] == [articulated.TWIST, articulated.PLACE]
   assert [k for k, _ in articulated.plan(_settled("libero_goal", 5, 1))] == [articulated.DRAG]
+  # A mug goes into the (open) microwave by its handle, then the door is shut.
+  assert [k for k, _ in articulated.plan(_settled("libero_10", 9, 1))] == [articulated.INSERT, articulated.PUSH_JOINT]
 
 
 def test_the_expert_opens_the_middle_drawer_by_its_joint():
@@ -88,7 +90,7 @@ def test_a_drawer_knocked_short_of_the_threshold_is_no_success(monkeypatch):
 def test_the_microwave_door_is_pushed_shut(monkeypatch):
   # The door alone (the mug's placement left out): shut past LIBERO's threshold, the hand withdrawn.
   plan = articulated.plan
-  monkeypatch.setattr(articulated, "plan", lambda b: [s for s in plan(b) if s[0] != articulated.PLACE])
+  monkeypatch.setattr(articulated, "plan", lambda b: [s for s in plan(b) if s[0] not in (articulated.PLACE, articulated.INSERT)])
   b = _settled("libero_10", 9, 2)
   ex = expert.Expert(b)
   close = [i for i, a in enumerate(b.goal.atoms) if a.predicate == "close"][0]
@@ -139,4 +141,43 @@ def test_two_objects_on_one_region_get_their_own_spots():
   # LIBERO-10 8: both moka pots on the stove's 15 cm cook region. Placed at its centre, the second
   # pot lands on the first; the first goes to a corner, the second where there is room.
   row = expert.run("libero_10", 8, trials=2, nthread=1)
+  assert row["success"] == 1.0, row
+
+
+def test_the_book_is_turned_square_to_the_caddys_slot_and_leaned_in():
+  # LIBERO-10 5: the book (2.9 cm thick) lies turned 95-135 deg from the caddy's 5.9 cm back slot;
+  # carried as grasped it jams on the slot's walls. Standing on the slot's floor its body is 3 mm
+  # under LIBERO's In box: the carry turns it square to the slot and tips it, and it is set down
+  # leaning over the slot's low divider.
+  b = _settled("libero_10", 5, 2)
+  e = expert.Expert(b)
+  t = e.tasks[0]
+  assert np.all(np.abs(e._square(t, np.arange(2))) > 0.5)
+  assert np.allclose(e._lean(t, np.arange(2)), [[1.0, 0.0]] * 2)  # toward the divider (+x)
+  row = expert.run("libero_10", 5, trials=3, nthread=1)
+  assert row["success"] == 1.0, row
+
+
+def test_the_mug_is_pushed_into_the_microwave_by_its_handle_and_the_door_shut():
+  # LIBERO-10 9: the microwave's ceiling is 14 cm over its floor; a downward hand holding the mug by
+  # its rim cannot enter. The hand takes the handle (the geom furthest out from the rim), pointing
+  # in through the opening (+y, the side no wall covers), and pushes the mug in; then shuts the door.
+  b = _settled("libero_10", 9, 1)
+  step = expert.Expert(b).articulated.steps[0]
+  assert step.kind == articulated.INSERT and np.allclose(step.way, [0.0, 1.0])
+  assert step.grip_local[0] > 0.06  # the handle's outer bar, 6.4 cm out from the mug's origin
+  row = expert.run("libero_10", 9, trials=2, nthread=1)
+  assert row["success"] == 1.0, row
+
+
+def test_a_mug_is_released_low_over_the_plates_floor():
+  # LIBERO-10 4: the plate's rim stands 1 cm over its floor. Released 3 cm over the rim, the yellow
+  # and white mug dropped 4 cm, tipped onto the rim and off the plate's middle (On's 3 cm); it is
+  # released RIM_RELEASE_ABOVE over the floor under the plate's centre.
+  b = _settled("libero_10", 4, 1)
+  e = expert.Expert(b)
+  t = e.tasks[1]
+  centre, top = e._target(t, np.arange(1))
+  assert top[0] - e._floor(t, np.arange(1), centre, top)[0] > 0.008
+  row = expert.run("libero_10", 4, trials=3, nthread=1)
   assert row["success"] == 1.0, row

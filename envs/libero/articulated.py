@@ -5,7 +5,9 @@ the hand's way), then every drawer or door a placement needs open (a prerequisit
 not list, added when some env starts with it shut) and the goal's own Open atoms, then the
 placements, then the Close atoms (a container is shut only once its contents are in). Which
 steps are ours is read from the atoms and the scene: joint atoms, and On(region) of an object too
-wide and flat to grasp across (a plate), which is dragged. Placements stay with `expert.Expert`.
+wide and flat to grasp across (a plate), which is dragged, and In(region behind a hinged door) of
+an object with a handle (a mug into a microwave), which is inserted. Other placements stay with
+`expert.Expert`.
 
 `Articulated` drives the envs whose current step is one of ours, batched over those envs, from
 privileged state (the joints' axes, anchors and positions; the moving bodies' geoms):
@@ -16,6 +18,9 @@ privileged state (the joints' axes, anchors and positions; the moving bodies' ge
 - a hinge without a handle we grasp (a door) is pushed on its panel's outer face near the top,
   the fingertips leading the door's face along its arc and the hand turning with the door;
 - a switch (the stove's knob) is grasped across its raised part and twisted about its axis;
+- a mug into a microwave (In a region behind a hinged door, of an object with a handle) is taken
+  by its handle with the hand pointing in through the opening, tipped down, lifted over the floor's
+  edge and pushed in, the hand kept outside (a downward hand over it meets the microwave's ceiling);
 - an object too wide and flat to grasp across (a plate) is dragged over the table by its rim,
   pinched on the side toward the region (the plate's far side may be against a cabinet), the
   hand's goal re-aimed every step from the object's centre to the region's.
@@ -33,7 +38,7 @@ import numpy as np
 
 from envs.libero import predicates
 
-PLACE, PULL, PUSH_JOINT, TWIST, DRAG = "place", "pull", "push_joint", "twist", "drag"
+PLACE, PULL, PUSH_JOINT, TWIST, DRAG, INSERT = "place", "pull", "push_joint", "twist", "drag", "insert"
 PRE, IN, GRIP, DRIVE, RELEASE, BACK, RESTORE, DONE = range(8)
 PHASES = ("pre", "in", "grip", "drive", "release", "back", "restore", "done")
 # Joint goals: drive past the predicate's threshold by this share of the rest of the joint's range
@@ -76,6 +81,17 @@ RESTORED = 0.03  # rad: the hand this close to the reset pose's orientation hand
 PHASE_LIMIT = 60  # control steps before a phase gives up waiting
 DRIVE_LIMIT = 120
 RETRIES = 2  # a joint step whose atom fails at its end starts over this many times
+# Insert: a mug into a microwave. A downward hand holding it by its rim stays above it, and the
+# microwave's ceiling (14 cm over its floor) stops it; the mug is taken by its handle instead (the
+# geom furthest out from its rim's centre, on the side away from the opening), the hand pointing
+# at the mug along the way in and tipped down (a level hand's wrist sits on the table's other mug),
+# lifted over the floor's front edge and pushed in level, the hand kept outside the opening.
+INSERT_PITCH = 0.7  # rad the hand points below the horizontal
+INSERT_PRE = 0.1  # m before the handle (against the way in) the hand starts from
+INSERT_ABOVE = 0.025  # m: the mug's bottom over the region's bottom while pushed in
+INSERT_DEPTH = 0.03  # m: the mug's body this far inside the region's front face (its cup behind it, off the back wall)
+INSERT_REACHED = 0.01  # m: the push ends with the body this close to its goal
+INSERT_TURN = 0.3  # rad the hand heads off the way in, away from the arm
 
 
 @dataclasses.dataclass(frozen=True)
@@ -90,8 +106,9 @@ class Step:
   part: int = -1  # pull: the handle geom; push_joint: the door panel geom
   grip_local: np.ndarray | None = None  # twist: the grip point in the knob's body frame
   across: np.ndarray | None = None  # twist: the knob's thin horizontal side, body frame (unit)
-  box: np.ndarray | None = None  # drag: the object's box in its body frame
-  site: int = -1  # drag: the region's site
+  box: np.ndarray | None = None  # drag, insert: the object's box in its body frame
+  site: int = -1  # drag, insert: the region's site
+  way: np.ndarray | None = None  # insert: the world's horizontal way in (unit), into the container's opening
 
 
 def _joint_atom(scene, model, predicate: str, name: str) -> predicates.Atom:
@@ -131,6 +148,30 @@ def _dragged(model, atom: predicates.Atom) -> bool:
   return bool(extent[:2].min() > DRAG_MIN_WIDTH and extent[2] < DRAG_MAX_HEIGHT)
 
 
+def _handle(model, body: int) -> np.ndarray | None:
+  """The body-frame centre of an object's handle: of its colliding geoms the one furthest (horizontally)
+  from the centre of the geoms reaching its top (a mug's rim), if that is well outside the rim."""
+  from envs.libero.expert import _box, _rim
+  rim = _rim(model, body, _box(model, body))
+  if rim is None:
+    return None
+  middle = rim.mean(0)
+  geoms = _colliding(model, body)
+  centres = np.array([_geom_box(model, g)[0] for g in geoms])
+  reach = np.linalg.norm((centres - middle)[:, :2], axis=-1)
+  radius = np.linalg.norm((rim - middle)[:, :2], axis=-1).max()
+  return centres[int(np.argmax(reach))] if reach.max() > radius + FINGER_HALF else None
+
+
+def _inserted(scene, model, atom: predicates.Atom) -> bool:
+  """In a region of a fixture behind a hinged door (a microwave), of an object with a handle."""
+  name = _container(scene, atom)
+  if name is None:
+    return False
+  joint = _joint_of(model, _joint_atom(scene, model, "open", name))
+  return int(model.jnt_type[joint]) == int(mujoco.mjtJoint.mjJNT_HINGE) and _handle(model, atom.body) is not None
+
+
 def plan(batch) -> list[tuple[str, predicates.Atom]]:
   """The goal's steps in the order the expert does them, as (kind, atom); kind PLACE goes to the
   pick-and-place expert. Computed from the goal and every env's current state (prerequisite
@@ -158,7 +199,7 @@ def plan(batch) -> list[tuple[str, predicates.Atom]]:
     if shut.any():
       opens.append(need)
   steps = [(_joint_kind(scene, model, a), a) for a in switches + opens]
-  steps += [(DRAG if _dragged(model, a) else PLACE, a) for a in places]
+  steps += [(DRAG if _dragged(model, a) else INSERT if _inserted(scene, model, a) else PLACE, a) for a in places]
   steps += [(_joint_kind(scene, model, a), a) for a in closes]
   return steps + [(PLACE, a) for a in other]  # the pick-and-place expert names what it cannot do
 
@@ -196,6 +237,10 @@ def make_step(batch, kind: str, atom: predicates.Atom) -> Step:
   if kind == DRAG:
     from envs.libero.expert import _box
     return Step(kind, atom, box=_box(model, atom.body), site=atom.site)
+  if kind == INSERT:  # the handle, and the way in through the opening (the side no wall covers)
+    from envs.libero.expert import _box
+    return Step(kind, atom, box=_box(model, atom.body), site=atom.site, grip_local=_handle(model, atom.body),
+                way=_way_in(batch, atom))
   jid = _joint_of(model, atom)
   body = int(model.jnt_bodyid[jid])
   lo, hi = model.jnt_range[jid]
@@ -222,6 +267,32 @@ def make_step(batch, kind: str, atom: predicates.Atom) -> Step:
   grip = (lo_r + hi_r) / 2
   grip[2] = hi_r[2] - KNOB_GRIP_DEPTH
   return Step(kind, atom, joint=jid, body=body, sign=sign, goal_q=goal_q, grip_local=grip, across=across)
+
+
+def _way_in(batch, atom: predicates.Atom) -> np.ndarray:
+  """[2] the world's horizontal way into a region through its container's opening: of the region's
+  four sides, the one no colliding geom of the container (its walls, not its door) stands in front of."""
+  model, a = batch.model, batch.data
+  parent = batch.scene.meta["regions"][atom.args[1]]["parent"]
+  root = model.body(batch.scene.meta["objects"][parent]["body"]).id
+  site, mat = a["site_xpos"][0, atom.site], a["site_xmat"][0, atom.site].reshape(3, 3)
+  half = np.abs(mat @ np.asarray(atom.size))
+  best, score = None, np.inf
+  for u in ([1.0, 0.0], [-1.0, 0.0], [0.0, 1.0], [0.0, -1.0]):
+    u = np.asarray(u)
+    probe = site[:2] + u * (np.abs(u) @ half[:2] + 0.02)  # just outside that side, at the region's middle height
+    cover = 0.0
+    for g in _colliding(model, root):
+      if model.geom_bodyid[g] != root:  # the fixture's own walls (not its door)
+        continue
+      c, h = _geom_box(model, g)
+      r = a["xmat"][0, root].reshape(3, 3)
+      centre, ext = a["xpos"][0, root] + r @ c, np.abs(r) @ h
+      inside = np.all(np.abs(np.r_[probe, site[2]] - centre) <= ext + 0.005)
+      cover += float(inside)
+    if cover < score:
+      best, score = -u, cover
+  return best
 
 
 def _rodrigues(axis: np.ndarray, angle: np.ndarray) -> np.ndarray:
@@ -276,6 +347,8 @@ class Articulated:
 
   def _holds(self, step: Step, ids: np.ndarray) -> np.ndarray:
     a = self.batch.data
+    if step.kind == INSERT:
+      return predicates._TESTS[step.atom.test](step.atom, predicates.GoalInputs(*[f[ids] for f in self.batch.goal_inputs()]))
     if step.kind == DRAG:  # in the region's middle half, or the atom itself holds (a plate dragged
       # to the region's edge is there: dragging it again would cost the rest of the episode)
       d = a["site_xpos"][ids, step.site, :2] - a["xpos"][ids, step.atom.body, :2]
@@ -295,6 +368,9 @@ class Articulated:
     if step.kind == DRAG:
       d = self.batch.data["site_xpos"][ids, step.site, :2] - self.batch.data["xpos"][ids, step.atom.body, :2]
       return np.linalg.norm(d, axis=-1) < PUSH_DONE
+    if step.kind == INSERT:
+      d = self._insert_goal(step, ids) - self.batch.data["xpos"][ids, step.atom.body, :2]
+      return np.linalg.norm(d, axis=-1) < INSERT_REACHED
     q = self.batch.data["qpos"][ids, self.batch.model.jnt_qposadr[step.joint]]
     dq = self.batch.data["qvel"][ids, self.batch.model.jnt_dofadr[step.joint]]
     # or past the atom's threshold and stopped there (a drawer shut against its cabinet short of its limit)
@@ -332,10 +408,41 @@ class Articulated:
       across = np.einsum("bij,j->bi", a["xmat"][ids, step.body].reshape(-1, 3, 3), step.across)
       self.ori[ids] = _yaw(_yaw_to(down, across[:, :2], hand_mat)) @ down
       self.away[ids] = [0.0, 0.0, 1.0]
+    elif step.kind == INSERT:  # pointing along the way in, tipped down; the fingers close across the handle (level)
+      way = np.tile(np.r_[step.way, 0.0], (len(ids), 1))
+      heading = np.einsum("bij,bj->bi", _yaw(self._insert_turn(step, ids)), way)
+      z = heading * np.cos(INSERT_PITCH) + np.array([0.0, 0.0, -np.sin(INSERT_PITCH)])
+      best = None
+      for s in (-1.0, 1.0):
+        x = s * np.stack([-heading[:, 1], heading[:, 0], np.zeros(len(ids))], -1)
+        r = np.stack([x, np.cross(z, x), z], axis=-1)
+        score = np.trace(r @ np.swapaxes(hand_mat, 1, 2), axis1=1, axis2=2)
+        best = (r, score) if best is None else (np.where((score > best[1])[:, None, None], r, best[0]),
+                                                np.maximum(score, best[1]))
+      self.ori[ids], self.away[ids] = best[0], -way
     else:
       u = _unit(a["site_xpos"][ids, step.site, :2] - a["xpos"][ids, step.atom.body, :2])
       self.ori[ids] = _yaw(_yaw_to(down, u, hand_mat)) @ down  # the fingers close across the rim (radially)
       self.away[ids] = [0.0, 0.0, 1.0]
+
+  def _insert_turn(self, step: Step, ids: np.ndarray) -> np.ndarray:
+    """[n] the hand's heading off the way in (rad, about the vertical): INSERT_TURN away from the arm,
+    the hand's back turned toward the shoulder (straight along the way in, the wrist meets the other mug, or the
+    arm its joint limits)."""
+    a = self.batch.data
+    mat = a["xmat"][ids, step.atom.body].reshape(-1, 3, 3)
+    handle = a["xpos"][ids, step.atom.body] + np.einsum("bij,j->bi", mat, step.grip_local)
+    arm = a["xpos"][ids, self.expert._shoulder, :2] - handle[:, :2]
+    cross = step.way[0] * arm[:, 1] - step.way[1] * arm[:, 0]  # > 0: the shoulder to the way's left
+    return np.where(cross > 0, -INSERT_TURN, INSERT_TURN)  # the heading away from it, its back toward it
+
+  def _insert_goal(self, step: Step, ids: np.ndarray) -> np.ndarray:
+    """[n, 2] where an inserted object's body goes: INSERT_DEPTH inside the region's face toward the
+    opening, level with the region's centre across the way in."""
+    a = self.batch.data
+    half = np.abs(a["site_xmat"][ids, step.site].reshape(-1, 3, 3) @ np.asarray(step.atom.size))
+    depth = np.abs(half[:, :2]) @ np.abs(step.way)
+    return a["site_xpos"][ids, step.site, :2] + step.way * (INSERT_DEPTH - depth)[:, None]
 
   def _slide(self, step: Step) -> bool:
     return int(self.batch.model.jnt_type[step.joint]) == int(mujoco.mjtJoint.mjJNT_SLIDE)
@@ -432,6 +539,18 @@ class Articulated:
         drive = anchor + np.einsum("bij,bj->bi", rot, self.grip_pos[ids] - anchor)
         sel = phase == DRIVE
         ori[sel] = rot[sel] @ self.ori[ids[sel]]
+        g_drive = 1.0
+      elif step.kind == INSERT:  # the handle taken, lifted over the floor's edge, pushed in level
+        from envs.libero.expert import _world_box
+        mat = a["xmat"][ids, step.atom.body].reshape(-1, 3, 3)
+        contact = a["xpos"][ids, step.atom.body] + np.einsum("bij,j->bi", mat, step.grip_local)
+        way = np.c_[np.tile(step.way, (ids.size, 1)), np.zeros(ids.size)]
+        pre = contact - way * INSERT_PRE
+        lo, _ = _world_box(step.box, a["xpos"][ids, step.atom.body], mat)
+        half = np.abs(a["site_xmat"][ids, step.site].reshape(-1, 3, 3) @ np.asarray(step.atom.size))
+        need = a["site_xpos"][ids, step.site, 2] - half[:, 2] + INSERT_ABOVE - lo[:, 2]  # the rise still to go
+        ahead = self._insert_goal(step, ids) - a["xpos"][ids, step.atom.body, :2]
+        drive = hand[ids] + np.c_[np.where((need < INSERT_ABOVE / 2)[:, None], ahead, 0.0), need]
         g_drive = 1.0
       else:  # DRAG
         from envs.libero.expert import _world_box

@@ -4,12 +4,14 @@ A goal whose atoms are all In(object, region) or On(object, region | object) of 
 free joint is done atom by atom by one state machine per environment: above the object, down,
 close, lift, carry over the target, down, open, up. The hand keeps the reset pose's downward
 orientation, turned about the vertical so that the fingers close across the object's shorter
-horizontal side. Grasp and release heights come from the object's box (its collision geoms in
-its body frame, a task constant) at its current pose. Actions are LIBERO's: the position error
+horizontal side; an object that fits an In region's box only turned is turned square to it while
+carried (a book into a caddy's slot), and one that would fail the box standing on its container's
+floor is set down leaning. Grasp and release heights come from the object's box (its collision
+geoms in its body frame, a task constant) at its current pose. Actions are LIBERO's: the position error
 over the controller's 5 cm scale and the orientation error over its 0.5 rad, clipped to [-1, 1].
 
-Open, Close, TurnOn and TurnOff atoms (drawers, the microwave's door, the stove's knob) and the
-dragged plate are `envs.libero.articulated`'s steps; the order of all steps is its `plan`.
+Open, Close, TurnOn and TurnOff atoms (drawers, the microwave's door, the stove's knob), the
+dragged plate and the mug pushed into the microwave are `envs.libero.articulated`'s steps; the order of all steps is its `plan`.
 `Expert` names an atom neither scripts.
 """
 
@@ -30,6 +32,8 @@ CLEARANCE = 0.08  # m above the object's top before descending
 GRASP_DEPTH = 0.03  # m below the object's top, at most half its height
 LIFT_CLEARANCE = 0.12  # m above the higher of the object's and the target's tops while carrying
 RELEASE_ABOVE = 0.03  # m between the object's bottom and the target's top (On) when opened
+RIM_RELEASE_ABOVE = 0.015  # m: ... a rim-held object's, over the target's floor under it (a mug over a plate's
+#                            floor, not its rim: dropped 4 cm, it tips onto the rim and off the plate's middle)
 # The Panda hand in the grip site's frame (robosuite's model, measured from its collision geoms):
 # the fingers close along the site's x axis, the palm's bottom is 3.1 cm above the site (its mesh's
 # lowest vertex) and the
@@ -75,6 +79,14 @@ TRAVERSE_CLEARANCE = 0.04  # m the hand's grip site keeps above what stands alon
 TRAVERSE_NEAR = 0.03  # m: this close (horizontally) to the grasp point the hand descends to the clearance height
 SPOT_MARGIN = 0.02  # m: a spot in a region keeps the object's body this far inside the region's edge
 SPOT_ROOM = 0.015  # m of room beyond the object's footprint from what stands in the region: more is as good
+FIT_MARGIN = 0.005  # m: a held object's footprint fits a region's box with this much to spare on each side
+CARRY_TURNED = 0.05  # rad: a carry that turns the held object ends this close to the turn
+# LIBERO's In box can start above its container's floor (the caddy's back slot: 1.1 cm, less the
+# test's 1 cm): an object whose body origin is below its own bottom (the book's, by 2 mm) fails it
+# standing on that floor, and is set down leaning over the slot's lower wall instead.
+LEAN_BELOW = 0.002  # m: an object whose body, upright on the floor, is not this far above the box's bottom leans
+LEAN_TILT = 0.35  # rad the hand tips a leaned object, its foot toward the higher wall (it settles at ~19 deg)
+WALL_PROBE = 0.01  # m beyond the region's side where its walls are looked for
 
 
 @dataclasses.dataclass(frozen=True)
@@ -215,6 +227,8 @@ class Expert:
     # a drawer-then-place goal does not have (LIBERO-Goal 3)
     self.traverse = np.ones(n, bool)
     self.spot = np.zeros((n, 2))  # where in a region the object's centre goes - the region's centre
+    self.lean = np.zeros((n, 2))  # the way a leaned object's top tips (toward the lower wall), or 0
+    self.turned = np.zeros(n, bool)  # the carry turns the hand (the object square to a tight region)
     self._finger_q = [j["qposadr"] for j in meta["robot"]["gripper_joints"]]
     self.gap = np.zeros(n)  # the fingers' opening at the previous step
     self.articulated = articulated.Articulated(self, steps)
@@ -359,6 +373,15 @@ class Expert:
     reach = np.einsum("bgj,gj->bg", np.abs(gmat[:, :, 2]), half)
     return gpos, gmat, half, gpos[..., 2] + reach, gpos[..., 2] - reach
 
+  def _floor(self, t: Task, ids: np.ndarray, xy: np.ndarray, top: np.ndarray) -> np.ndarray:
+    """[n] the height an On(object) target holds an object up to at xy [n, 2]: the highest top of its
+    colliding boxes there (a plate's floor, 1 cm under its rim), or its box's top `top` [n] if none."""
+    gpos, gmat, half, tops, _ = self._standing(t, ids)
+    owner = self._obstacles["owner"][self._obstacles["owner"] != t.body]
+    under = (self._flat_distance(xy[:, None], gpos, gmat, half)[:, 0] < 1e-6) & (owner == t.target_body)
+    floor = np.where(under, tops, -np.inf).max(-1)
+    return np.where(np.isfinite(floor), floor, top)
+
   @staticmethod
   def _flat_distance(points: np.ndarray, gpos: np.ndarray, gmat: np.ndarray, half: np.ndarray) -> np.ndarray:
     """[n, p, g] horizontal distances from points [n, p, 2] to boxes (at their centres' heights)."""
@@ -417,6 +440,55 @@ class Expert:
     spread = np.linalg.norm(offsets, axis=-1)
     score = np.minimum(room, SPOT_ROOM) + (0.01 if later else -0.01) * spread / max(float(free.max()), 1e-3)
     return offsets[np.arange(n), np.argmax(score, axis=1)]
+
+  def _square(self, t: Task, ids: np.ndarray) -> np.ndarray:
+    """[n] the turn (rad, about the vertical) that puts a held object's footprint square inside an
+    In region's box where it does not fit as it hangs (a book into a caddy's 5.5 cm slot), or 0:
+    of the quarter turns that fit, the least."""
+    if t.atom.test != "in_region":
+      return np.zeros(len(ids))
+    a = self.batch.data
+    mat = a["xmat"][ids, t.body].reshape(-1, 3, 3)
+    site = a["site_xmat"][ids, t.site].reshape(-1, 3, 3)
+    # the object's x from the region's x, about the world's vertical (a region's site may point down)
+    phi = np.arctan2(mat[:, 1, 0], mat[:, 0, 0]) - np.arctan2(site[:, 1, 0], site[:, 0, 0])
+    half = (t.box[1, :2] - t.box[0, :2]) / 2
+    room = np.asarray(t.atom.size)[:2] - FIT_MARGIN
+
+    def fits(angle):
+      c, s = np.abs(np.cos(angle)), np.abs(np.sin(angle))
+      return (c * half[0] + s * half[1] <= room[0]) & (s * half[0] + c * half[1] <= room[1])
+
+    best = np.zeros(len(ids))
+    cost = np.full(len(ids), np.inf)
+    for quarter in range(4):
+      delta = (quarter * np.pi / 2 - phi + np.pi) % (2 * np.pi) - np.pi
+      better = fits(phi + delta) & (np.abs(delta) < cost)
+      best, cost = np.where(better, delta, best), np.where(better, np.abs(delta), cost)
+    return np.where(fits(phi), 0.0, best)
+
+  def _lean(self, t: Task, ids: np.ndarray) -> np.ndarray:
+    """[n, 2] the horizontal way a held object's top tips for its set-down (unit), or 0: only in an
+    In region that it would fail standing upright on the container's floor (its body under the
+    region's box); toward the lower of the walls across the region's narrow side (the caddy's
+    divider), the top resting on it."""
+    if t.atom.test != "in_region":
+      return np.zeros((len(ids), 2))
+    a = self.batch.data
+    site, mat = a["site_xpos"][ids, t.site], a["site_xmat"][ids, t.site].reshape(-1, 3, 3)
+    half = np.abs(np.einsum("bij,j->bi", mat, np.asarray(t.atom.size)))
+    bottom = site[:, 2] - half[:, 2] - t.atom.in_box_below
+    gpos, gmat, ghalf, top, _ = self._standing(t, ids)
+    under = self._flat_distance(site[:, None, :2], gpos, gmat, ghalf)[:, 0] < 1e-6  # [n, g]
+    floor = np.where(under & (top < site[:, 2, None]), top, -np.inf).max(-1)
+    low = np.isfinite(floor) & (floor - t.box[0, 2] < bottom + LEAN_BELOW)  # its body, standing on the floor
+    narrow = np.where((half[:, 0] < half[:, 1])[:, None], [1.0, 0.0], [0.0, 1.0])  # world axes
+    probe = site[:, None, :2] + np.array([1.0, -1.0])[None, :, None] * narrow[:, None] * (
+        (half[:, :2] * narrow).sum(-1)[:, None, None] + WALL_PROBE)
+    near = self._flat_distance(probe, gpos, gmat, ghalf) < WALL_PROBE / 2  # [n, 2, g]
+    wall = np.where(near, top[:, None], -np.inf).max(-1)  # [n, 2]: the walls' tops beyond either side
+    way = np.where((wall[:, 0] <= wall[:, 1])[:, None], narrow, -narrow)
+    return np.where((low & np.isfinite(wall).all(-1))[:, None], way, 0.0)
 
   # ---------------------------------------------------------------- one control step
 
@@ -486,9 +558,17 @@ class Expert:
       below = hand[ids[sel], 2] - lo[sel, 2]  # the hand's height over the object's bottom
       if t.atom.test == "in_region":
         z = place_top[sel] + (hand[ids[sel], 2] - centre[sel, 2])
+      elif t.rim is not None and t.target_body >= 0 and sel.any():  # released low over the dish's floor
+        z = self._floor(t, ids[sel], place_xy[sel], place_top[sel]) + RIM_RELEASE_ABOVE + below
       else:
         z = place_top[sel] + RELEASE_ABOVE + below
       aim = centre[sel, :2] if t.rim is None else self.batch.data["xpos"][ids[sel], t.body, :2]  # a bowl's base
+      leaned = self.lean[ids[sel]].any(-1)
+      if leaned.any():  # a tipped object's foot (its bottom's centre) over the region's centre
+        a = self.batch.data
+        foot = np.r_[(t.box[0, :2] + t.box[1, :2]) / 2, t.box[0, 2]]
+        feet = a["xpos"][ids[sel], t.body] + a["xmat"][ids[sel], t.body].reshape(-1, 3, 3) @ foot
+        aim = np.where(leaned[:, None], feet[:, :2], aim)
       tgt[sel] = np.c_[place_xy[sel] - (aim - hand[ids[sel], :2]), z]  # where it hangs now
       sel = phase == RELEASE
       tgt[sel] = hand[ids[sel]]
@@ -505,7 +585,8 @@ class Expert:
       done |= (phase == DESCEND) & (err < 0.006)
       done |= (phase == CLOSE) & (count >= CLOSE_STEPS) & ((closing[ids] < CLOSED_SPEED) | (count >= CLOSE_STEPS_MAX))
       done |= (phase == LIFT) & (np.abs(carry_z - hand[ids, 2]) < 0.02)
-      done |= (phase == CARRY) & (np.linalg.norm(tgt[:, :2] - hand[ids, :2], axis=-1) < 0.01)
+      done |= (phase == CARRY) & (np.linalg.norm(tgt[:, :2] - hand[ids, :2], axis=-1) < 0.01) & (
+          ~self.turned[ids] | (np.linalg.norm(_rotation_error(self.goal_ori[ids], hand_mat[ids]), axis=-1) < CARRY_TURNED))
       # or resting on something: the hand held still over the target (an In region's middle may lie
       # below its container's floor: a drawer's)
       still = np.abs(hand[ids, 2] - self.hand_z[ids]) < STILL_SPEED
@@ -522,6 +603,18 @@ class Expert:
         self.lift_z[ids[closed]] = hand[ids[closed], 2]
       lifted = done & (phase == LIFT)
       self.offset[ids[lifted]] = centre[lifted] - hand[ids[lifted]]
+      if lifted.any():  # turned with the hand while carried: square to a region it fits only so
+        turn = self._square(t, ids[lifted])
+        rz = _yaw_matrix(turn)
+        self.goal_ori[ids[lifted]] = rz @ self.goal_ori[ids[lifted]]
+        self.offset[ids[lifted]] = np.einsum("bij,bj->bi", rz, self.offset[ids[lifted]])
+        way = self._lean(t, ids[lifted])
+        self.lean[ids[lifted]] = way
+        leaned = way.any(-1)  # the fingers tip toward the higher wall: the object's top toward the lower
+        axis = np.cross([0.0, 0.0, 1.0], np.c_[way, np.zeros(len(way))])
+        self.goal_ori[ids[lifted]] = articulated._rodrigues(
+            np.where(leaned[:, None], axis, [1.0, 0.0, 0.0]), np.where(leaned, LEAN_TILT, 0.0)) @ self.goal_ori[ids[lifted]]
+        self.turned[ids[lifted]] = (turn != 0.0) | leaned
       nxt = np.where(done, phase + 1, phase)
       # a grasp across the object that closed on nothing (the fingers landed on a neighbour's edge)
       # starts over from above (not a rim grasp: a bowl's 3 mm wall leaves the fingers as close)
@@ -540,6 +633,14 @@ class Expert:
     pos = np.clip((target - hand) / 0.05, -1, 1)
     rot = np.clip(_rotation_error(self.goal_ori, hand_mat) / 0.5, -1, 1)
     return np.concatenate([pos, rot, grip[:, None]], axis=1)
+
+
+def _yaw_matrix(angle: np.ndarray) -> np.ndarray:
+  """[n, 3, 3] rotations by `angle` [n] (rad) about the vertical."""
+  c, s = np.cos(angle), np.sin(angle)
+  rz = np.zeros((len(angle), 3, 3))
+  rz[:, 0, 0], rz[:, 0, 1], rz[:, 1, 0], rz[:, 1, 1], rz[:, 2, 2] = c, -s, s, c, 1.0
+  return rz
 
 
 def _rotation_error(desired: np.ndarray, current: np.ndarray) -> np.ndarray:
