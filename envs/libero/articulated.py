@@ -158,7 +158,9 @@ def plan(batch) -> list[tuple[str, predicates.Atom]]:
     if shut.any():
       opens.append(need)
   steps = [(_joint_kind(scene, model, a), a) for a in switches + opens]
-  steps += [(DRAG if _dragged(model, a) else PLACE, a) for a in places]
+  from envs.libero import laydown  # a tall object onto a tilted board is laid down (envs.libero.laydown)
+  steps += [(DRAG if _dragged(model, a) else laydown.LAY if laydown.applies(model, scene, a) else PLACE, a)
+            for a in places]
   steps += [(_joint_kind(scene, model, a), a) for a in closes]
   return steps + [(PLACE, a) for a in other]  # the pick-and-place expert names what it cannot do
 
