@@ -6,9 +6,10 @@ edge, in the trough between the board and its lip, where it rests on both.
 
 A bottle held at its neck from above ends up along the hand, which would then have to point
 horizontally close to the robot's base, beyond the arm's reach (its elbow and wrist at their
-limits). So it is grasped from the side at its neck, the hand level, pointing across the way from
-the robot's shoulder to the bottle (a reachable level pose, the hand above the bowl beside the
-bottle and the rack's foot), the fingers closing horizontally and their width along the bottle.
+limits). So it is grasped from the side at its neck, the hand level, pointing 45 degrees to the
+right of the way from the robot's shoulder to the bottle (a reachable level pose, the hand above
+the bowl beside the bottle and the rack's foot; pointing across that way, the hand of LIBERO-90 27
+met the cabinet behind its bottle), the fingers closing horizontally, their width along the bottle.
 Turning the hand a quarter turn about a horizontal axis then lays the bottle along the board's
 edge, the hand pointing into the board (perpendicular to it), the fingers closing up and down the
 slope. It is lowered along the board's normal to just above it, let go, and the hand backs off
@@ -35,7 +36,7 @@ TALL = 2.0  # ... and an object this many times taller than wide: laid down, not
 BOARD_NEAR = 0.01  # m: the board is the parent's largest colliding geom this close to the region's site
 GRIP_BELOW_TOP = 0.033  # m below the object's top the fingers close across it (the bottle's neck: the
 #                         hand clear of the bowl beside it and the rack's foot)
-GRASP_TURN = -np.pi / 2  # rad: the level hand points this far (about the vertical) off the way from the shoulder
+GRASP_TURN = -np.pi / 4  # rad: the level hand points this far (about the vertical) off the way from the shoulder
 PRE_BACK = 0.12  # m the hand waits back from the grasp along its pointing direction ...
 PRE_UP = 0.12  # ... and this far above it, while it turns level
 LIFT_UP = 0.2  # m the object is lifted before the hand turns (its bottom swings up to the hand's height)
