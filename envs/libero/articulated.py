@@ -23,7 +23,8 @@ privileged state (the joints' axes, anchors and positions; the moving bodies' ge
   edge and pushed in, the hand kept outside (a downward hand over it meets the microwave's ceiling);
 - an object too wide and flat to grasp across (a plate) is dragged over the table by its rim,
   pinched on the side toward the region (the plate's far side may be against a cabinet), the
-  hand's goal re-aimed every step from the object's centre to the region's.
+  hand's goal re-aimed every step from the object's centre to a spot past the region's centre
+  (`DRAG_DEEP`), and the drag stops once the object is well inside the region or at that spot.
 Each step ends with the gripper open, the hand backed off and turned back to the reset pose's
 downward orientation (what the pick-and-place expert starts from); a joint step whose atom
 still fails then is tried again.
@@ -65,9 +66,13 @@ KNOB_GRIP_DEPTH = 0.015  # m below the knob's top
 PINCH_RADIUS = 0.058  # m from a dragged dish's centre: where its rim is pinched (LIBERO's plate: 3.0-6.7 cm)
 PINCH_HEIGHT = 0.014  # m: the grip site over the dish's bottom (its rim there ~1.1 cm up; fingertips 1.2 cm below the site)
 DRAG_PAST, DRAG_STEP = 0.015, 0.02  # m
+# m: a dragged object is aimed this far past its region's centre along its way in (kept PUSH_MARGIN
+# inside): what it shoves ahead of it (LIBERO-Goal 5: the cream cheese just short of the region)
+# stays at the region's near edge, not under the object's rim at its centre
+DRAG_DEEP = 0.03
 FINGERS_EMPTY = 0.003  # m: the fingers' joints this close to shut hold nothing
 PUSH_MARGIN = 0.01  # m: a pushed object inside its region by this much counts as there
-PUSH_DONE = 0.025  # m: a push stops with the object's centre this close to the region's
+PUSH_DONE = 0.025  # m: a push stops with the object's centre this close to its aim (`DRAG_DEEP`)
 DRAG_MIN_WIDTH = 0.07  # m: an object wider than the open fingers on both sides ...
 DRAG_MAX_HEIGHT = 0.03  # m: ... and this flat is dragged by its rim, not grasped across
 INTEGRAL_GAIN, INTEGRAL_NEAR, INTEGRAL_MAX = 0.15, 0.03, 0.04  # per step, m, m
@@ -199,7 +204,9 @@ def plan(batch) -> list[tuple[str, predicates.Atom]]:
     if shut.any():
       opens.append(need)
   steps = [(_joint_kind(scene, model, a), a) for a in switches + opens]
-  steps += [(DRAG if _dragged(model, a) else INSERT if _inserted(scene, model, a) else PLACE, a) for a in places]
+  from envs.libero import laydown  # a tall object onto a tilted board is laid down (envs.libero.laydown)
+  steps += [(DRAG if _dragged(model, a) else INSERT if _inserted(scene, model, a)
+             else laydown.LAY if laydown.applies(model, scene, a) else PLACE, a) for a in places]
   steps += [(_joint_kind(scene, model, a), a) for a in closes]
   return steps + [(PLACE, a) for a in other]  # the pick-and-place expert names what it cannot do
 
@@ -344,6 +351,17 @@ class Articulated:
     self._fingers = [j["qposadr"] for j in self.batch.scene.meta["robot"]["gripper_joints"]]
     self.integral = np.zeros((n, 3))  # the position error integrated near a phase's goal
     self.back_from = np.zeros((n, 3))  # where the hand backs off to, then rises from
+    self.drag_spot = np.zeros((n, 2))  # drag: where in its region the object is aimed - the region's centre
+
+  def _inside(self, step: Step, ids: np.ndarray) -> np.ndarray:
+    """The dragged object's atom holds with PUSH_MARGIN to spare on every side of its region."""
+    size = tuple(np.asarray(step.atom.size) - [PUSH_MARGIN, PUSH_MARGIN, 0.0])
+    inputs = predicates.GoalInputs(*[f[ids] for f in self.batch.goal_inputs()])
+    return predicates._TESTS[step.atom.test](dataclasses.replace(step.atom, size=size), inputs)
+
+  def _drag_goal(self, step: Step, ids: np.ndarray) -> np.ndarray:
+    """[n, 2] where a dragged object's centre is aimed: its region's centre + `drag_spot`."""
+    return self.batch.data["site_xpos"][ids, step.site, :2] + self.drag_spot[ids]
 
   def _holds(self, step: Step, ids: np.ndarray) -> np.ndarray:
     a = self.batch.data
@@ -366,8 +384,8 @@ class Articulated:
   def _reached(self, step: Step, ids: np.ndarray) -> np.ndarray:
     """The joint is at its goal (past the threshold by the step's margin)."""
     if step.kind == DRAG:
-      d = self.batch.data["site_xpos"][ids, step.site, :2] - self.batch.data["xpos"][ids, step.atom.body, :2]
-      return np.linalg.norm(d, axis=-1) < PUSH_DONE
+      d = self._drag_goal(step, ids) - self.batch.data["xpos"][ids, step.atom.body, :2]
+      return (np.linalg.norm(d, axis=-1) < PUSH_DONE) | self._inside(step, ids)
     if step.kind == INSERT:
       d = self._insert_goal(step, ids) - self.batch.data["xpos"][ids, step.atom.body, :2]
       return np.linalg.norm(d, axis=-1) < INSERT_REACHED
@@ -421,7 +439,10 @@ class Articulated:
                                                 np.maximum(score, best[1]))
       self.ori[ids], self.away[ids] = best[0], -way
     else:
-      u = _unit(a["site_xpos"][ids, step.site, :2] - a["xpos"][ids, step.atom.body, :2])
+      room = np.asarray(step.atom.size[:2]) - PUSH_MARGIN
+      self.drag_spot[ids] = np.clip(_unit(a["site_xpos"][ids, step.site, :2] - a["xpos"][ids, step.atom.body, :2])
+                                    * DRAG_DEEP, -room, room)
+      u = _unit(self._drag_goal(step, ids) - a["xpos"][ids, step.atom.body, :2])
       self.ori[ids] = _yaw(_yaw_to(down, u, hand_mat)) @ down  # the fingers close across the rim (radially)
       self.away[ids] = [0.0, 0.0, 1.0]
 
@@ -556,7 +577,7 @@ class Articulated:
         from envs.libero.expert import _world_box
         lo, hi = _world_box(step.box, a["xpos"][ids, step.atom.body], a["xmat"][ids, step.atom.body].reshape(-1, 3, 3))
         centre = (lo + hi) / 2
-        goal = a["site_xpos"][ids, step.site, :2]
+        goal = self._drag_goal(step, ids)
         u = _unit(goal - centre[:, :2])
         # the fingers pinch the dish's rim on its side toward the goal (one finger over the rim,
         # one outside it) and drag it there

@@ -11,7 +11,9 @@ geoms in its body frame, a task constant) at its current pose. Actions are LIBER
 over the controller's 5 cm scale and the orientation error over its 0.5 rad, clipped to [-1, 1].
 
 Open, Close, TurnOn and TurnOff atoms (drawers, the microwave's door, the stove's knob), the
-dragged plate and the mug pushed into the microwave are `envs.libero.articulated`'s steps; the order of all steps is its `plan`.
+dragged plate and the mug pushed into the microwave are `envs.libero.articulated`'s steps, a tall
+object put on a tilted board (the wine bottle on the rack) is laid down by `envs.libero.laydown`;
+the order of all steps is `plan`'s.
 `Expert` names an atom neither scripts.
 """
 
@@ -24,6 +26,7 @@ import numpy as np
 
 from envs.libero import articulated
 from envs.libero import engine as engines
+from envs.libero import laydown
 from envs.libero import predicates
 
 ABOVE, DESCEND, CLOSE, LIFT, CARRY, LOWER, RELEASE, RETREAT, DONE = range(9)
@@ -188,7 +191,12 @@ class Expert:
     model, meta = batch.model, batch.scene.meta
     self.tasks = []
     steps = {}  # plan index -> articulated.Step: done by self.articulated
+    lays = {}  # plan index -> laydown.Step: done by self.laydown
     for kind, atom in articulated.plan(batch):
+      if kind == laydown.LAY:
+        lays[len(self.tasks)] = laydown.make_step(batch, atom)
+        self.tasks.append(lays[len(self.tasks)])
+        continue
       if kind != articulated.PLACE:
         steps[len(self.tasks)] = articulated.make_step(batch, kind, atom)
         self.tasks.append(steps[len(self.tasks)])
@@ -232,6 +240,7 @@ class Expert:
     self._finger_q = [j["qposadr"] for j in meta["robot"]["gripper_joints"]]
     self.gap = np.zeros(n)  # the fingers' opening at the previous step
     self.articulated = articulated.Articulated(self, steps)
+    self.laydown = laydown.LayDown(self, lays)
 
   # ---------------------------------------------------------------- what the expert reads
 
@@ -630,6 +639,7 @@ class Expert:
       self.fresh[ids] = done
     self.hand_z = hand[:, 2].copy()
     self.articulated.act(hand, hand_mat, target, grip)
+    self.laydown.act(hand, hand_mat, target, grip)
     pos = np.clip((target - hand) / 0.05, -1, 1)
     rot = np.clip(_rotation_error(self.goal_ori, hand_mat) / 0.5, -1, 1)
     return np.concatenate([pos, rot, grip[:, None]], axis=1)
