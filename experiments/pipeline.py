@@ -95,8 +95,10 @@ def evaluated(run: Path, tasks, exp: Experiment, name: str, source: Path, extra:
   are the pretrained runs).
   """
   path = run / "eval" / f"{name}_trials{exp.trials}_seed{exp.eval_seed}.json"
-  if path.exists():
-    return renamed(json.loads(path.read_text()))["results"]  # written before today's key names too
+  if path.exists():  # written before today's key names too; where the run is now (a moved folder)
+    return [dict(r, run=str(run), **({"routing_file": str(path.parent / Path(r["routing_file"]).name)}
+                                      if r.get("routing_file") else {}))
+            for r in renamed(json.loads(path.read_text()))["results"]]
   controller, cfg = load_controller(run)
   row = groups.row_fields(run_files.read_config(source), experiment.read_record(source))
   results = []

@@ -568,3 +568,18 @@ def test_fewshot_units_are_tasks_or_whole_suites():
                                                           "/tmp/src_fewshot/libero_object")
   with pytest.raises(ValueError, match="fewshot.per"):
     experiment.FewShot(per="suite")
+
+
+def test_an_evaluation_read_back_names_where_its_run_is_now(tmp_path):
+  # a results folder moved after its runs were evaluated: the read-back results point at the
+  # run's folder and routing arrays where they are now, so that publishing copies them
+  exp = experiment.get("quick")
+  run = tmp_path / "moved" / "runs" / "r"
+  (run / "eval").mkdir(parents=True)
+  stale = "/elsewhere/runs/r/eval/quickstart3_trials5_seed1000_jujube_pick.routing.npz"
+  (run / "eval" / f"quickstart3_trials{exp.trials}_seed{exp.eval_seed}.json").write_text(json.dumps(
+      dict(results=[dict(task="jujube_pick", run="/elsewhere/runs/r", routing_file=stale, success_rate=1.0),
+                    dict(task="drawer_open", run="/elsewhere/runs/r", routing_file=None, success_rate=0.0)])))
+  got = pipeline.evaluated(run, ["jujube_pick", "drawer_open"], exp, "quickstart3", run)
+  assert got[0]["run"] == str(run) and got[0]["routing_file"] == str(run / "eval" / Path(stale).name)
+  assert got[1]["routing_file"] is None and got[1]["success_rate"] == 0.0
