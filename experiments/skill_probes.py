@@ -163,6 +163,8 @@ def geometry(run: Path, act_run: Path | None, tasks) -> dict:
     apolicy = Policy(acfg.model)
     act = (jax.jit(lambda p, o: apolicy.apply({"params": p}, o, method=Policy.encode)[0]), aparams)
   states = demo_states(run, tasks)
+  if not states:
+    raise ValueError(f"{run}: its demonstrations hold none of the tasks {', '.join(tasks)}")
   out = {}
   skills = None
   chosen, phase = [], []
@@ -201,11 +203,15 @@ def geometry(run: Path, act_run: Path | None, tasks) -> dict:
 
 
 def report(result: dict) -> str:
-  tasks = result["tasks"]
-  abbr = [tables.abbr(t) for t in tasks]
   runs = list(result["seeds"])  # "0", "1", ... or, for a config with variants, "<variant>/seed<S>"
   looped = [s for s in runs if "closed_loop" in result["seeds"][s]]
-  lines = closed_loop_report(result, looped, tasks, abbr) if looped else []
+  # one closed-loop table per training taskset (runs of libero_cpu's arms are on different suites)
+  by_tasks: dict[tuple, list[str]] = {}
+  for s in looped:
+    by_tasks.setdefault(tuple(result["seeds"][s].get("tasks", result["tasks"])), []).append(s)
+  lines = []
+  for tasks, group in by_tasks.items():
+    lines += ([""] if lines else []) + closed_loop_report(result, group, tasks, [tables.abbr(t) for t in tasks])
   lines += ["", "Skill geometry on demonstration states (per run, mean over the tasks; per task in the JSON); "
             "phase NMI: the router's choice (argmax) against the manipulation phase mined from the "
             "demonstration (data/segments.py), all tasks pooled:", "",
@@ -277,11 +283,14 @@ def main(argv=None) -> int:
   try:
     exp = experiment.only(experiment.get(args.config, args.set), args.variants, args.config)
     out = Path(args.out or f"results/{args.config}")
-    tasks = pipeline.tasks_of(exp.train.taskset)
-    result = dict(config=args.config, trials=exp.trials, eval_seed=exp.eval_seed, tasks=list(tasks), seeds={},
+    by_arm = pipeline.arms(exp, out)
+    # arms may train on different suites (libero_cpu): each run is probed on its own training tasks
+    every = tuple(dict.fromkeys(t for _, arm, _ in by_arm for t in pipeline.tasks_of(arm.train.taskset)))
+    result = dict(config=args.config, trials=exp.trials, eval_seed=exp.eval_seed, tasks=list(every), seeds={},
                   device=str(jax.devices()[0]))
     t0 = time.time()
-    for variant, arm, arm_out in pipeline.arms(exp, out):
+    for variant, arm, arm_out in by_arm:
+      tasks = pipeline.tasks_of(arm.train.taskset)
       for seed in arm.seeds:
         run = pipeline.pretrain_config(arm, "skillplug", seed, arm_out).run_dir
         act_run = pipeline.pretrain_config(arm, "act", seed, arm_out).run_dir
@@ -290,7 +299,7 @@ def main(argv=None) -> int:
                            f"--config {args.config} --out {out})")
         k = run_files.read_config(run).model.plug.num_skills
         key = f"{variant.name}/seed{seed}" if variant.name else str(seed)
-        entry = dict(run=str(run), variant=variant.name, label=variant.label or variant.name)
+        entry = dict(run=str(run), variant=variant.name, label=variant.label or variant.name, tasks=list(tasks))
         if not args.geometry_only:
           chosen = select(modes(k, args.pairs, args.drops), args.modes)
           result["modes"] = list(chosen)

@@ -152,3 +152,13 @@ def test_the_libero_protocol_runs_end_to_end_through_the_pipeline(tmp_path):
   (few,) = part["fewshot"]
   assert few["task"] == "libero_object:0" and sorted(few["trainable"]) == ["action_head", "router"]
   assert few["run"].endswith("_fewshot/libero_object:0") and few["source"] == run
+  # the skill probes' geometry reads a LIBERO run's demonstrations (its +-1 gripper command mined into
+  # phases), on the run's own tasks; tasks its dataset lacks are named
+  from pathlib import Path
+
+  from experiments import skill_probes
+  geo = skill_probes.geometry(Path(run), None, ("libero_object:1",))
+  assert set(geo["tasks"]) == {"libero_object:1"} and len(geo["skill_cosine"]) == 8
+  assert sum(map(sum, geo["phase_skill_counts"])) == geo["tasks"]["libero_object:1"]["states"] == 4
+  with pytest.raises(ValueError, match="none of the tasks libero_goal:0"):
+    skill_probes.geometry(Path(run), None, ("libero_goal:0",))
