@@ -379,11 +379,11 @@ class Expert:
     pull = pull / np.maximum(np.linalg.norm(pull, axis=-1, keepdims=True), 1e-9)
     return np.where(under.any(1)[:, None], pull * ESCAPE, 0.0)
 
-  def _standing(self, t: Task, ids: np.ndarray):
+  def _standing(self, t: Task | int, ids: np.ndarray):
     """(centre [n, g, 3], rotation [n, g, 3, 3], half [g, 3], top [n, g], bottom [n, g]) of the
-    colliding boxes of every object but `t`'s, in the world."""
+    colliding boxes of every object but `t`'s (a task's, or a body id: an articulated step's fixture), in the world."""
     o, a = self._obstacles, self.batch.data
-    keep = o["owner"] != t.body
+    keep = o["owner"] != (t if isinstance(t, (int, np.integer)) else t.body)
     bmat = a["xmat"][ids[:, None], o["body"][keep]].reshape(len(ids), -1, 3, 3)
     gpos = a["xpos"][ids[:, None], o["body"][keep]] + np.einsum("bgij,gj->bgi", bmat, o["centre"][keep])
     gmat = np.einsum("bgij,gjk->bgik", bmat, o["rot"][keep])
@@ -407,7 +407,7 @@ class Expert:
     local = np.einsum("bgji,bpgj->bpgi", gmat, diff)
     return np.linalg.norm(np.maximum(np.abs(local) - half, 0.0), axis=-1)
 
-  def _path_top(self, t: Task, ids: np.ndarray, start: np.ndarray, end: np.ndarray) -> np.ndarray:
+  def _path_top(self, t: Task | int, ids: np.ndarray, start: np.ndarray, end: np.ndarray) -> np.ndarray:
     """[n] the highest top of what stands within the palm's reach of the hand's way from `start` to
     `end` [n, 2] (a basket just filled, beside the next object): the hand passes over it, not
     through its wall dragging it along."""
