@@ -94,7 +94,7 @@ WALL_PROBE = 0.01  # m beyond the region's side where its walls are looked for
 # and the forearm folded straight down over a downward hand (joints 1 and 3, 5 and 7 in line), the
 # elbow at its limit (-3.07 rad); the OSC cannot raise the hand and drifts it toward the base
 # (LIBERO-10 7: the cream cheese 34 cm from the shoulder, 14 cm of drift, the carry stuck). The
-# object is slid out on the table first, then lifted.
+# object is slid out on the table first, then lifted (not one held by its rim: see `act`).
 WRIST_ABOVE = 0.2  # m: the Panda's wrist (link 6) above the grip site of a downward hand
 REACH_MIN = 0.4  # m the lift keeps the wrist from the shoulder (beyond 0.4 m the elbow stayed under -2.77 rad)
 REACH_SLIDE_STEPS = 30  # control steps at most for a slide out to REACH_MIN (1-2 cm a step)
@@ -579,7 +579,8 @@ class Expert:
           self.count[ids] < self.slide_steps[ids])
       tgt[slide] = np.c_[self.lift_xy[ids[slide]], self.lift_z[ids[slide]] + SLIDE_RAISE]
       rise = sel & ~slide
-      tgt[rise] = self._reach_out(ids[rise], tgt[rise], carry_z[rise])
+      if t.rim is None:  # not a rim grasp: slid by its 3 mm wall, a bowl on LIBERO-Spatial 7's stove slipped out
+        tgt[rise] = self._reach_out(ids[rise], tgt[rise], carry_z[rise])
       sel = phase == CARRY
       g[sel] = 1.0
       tgt[sel] = np.c_[place_xy[sel] - self.offset[ids[sel], :2], carry_z[sel]]
@@ -636,8 +637,10 @@ class Expert:
         got = ids[closed]
         self.lift_xy[got] = hand[got, :2] + self._escape(t, got, lo[closed], hi[closed])
         self.lift_z[got] = hand[got, 2]
-        out = self._reach_out(got, np.c_[self.lift_xy[got], self.lift_z[got]], self.carry_z[got])[:, :2]
-        self.slide_steps[got] = np.where(np.linalg.norm(out - self.lift_xy[got], axis=-1) > 0.0, REACH_SLIDE_STEPS, SLIDE_STEPS)
+        out = self.lift_xy[got] if t.rim is not None else self._reach_out(
+            got, np.c_[self.lift_xy[got], self.lift_z[got]], self.carry_z[got])[:, :2]
+        moved = np.linalg.norm(out - self.lift_xy[got], axis=-1) > 0.0
+        self.slide_steps[got] = np.where(moved, REACH_SLIDE_STEPS, SLIDE_STEPS)
         self.lift_xy[got] = out
       lifted = done & (phase == LIFT)
       self.offset[ids[lifted]] = centre[lifted] - hand[ids[lifted]]
