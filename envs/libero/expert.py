@@ -90,6 +90,14 @@ CARRY_TURNED = 0.05  # rad: a carry that turns the held object ends this close t
 LEAN_BELOW = 0.002  # m: an object whose body, upright on the floor, is not this far above the box's bottom leans
 LEAN_TILT = 0.35  # rad the hand tips a leaned object, its foot toward the higher wall (it settles at ~19 deg)
 WALL_PROBE = 0.01  # m beyond the region's side where its walls are looked for
+# A lift close to the robot passes a singular arm: near the shoulder's height, the upper arm upright
+# and the forearm folded straight down over a downward hand (joints 1 and 3, 5 and 7 in line), the
+# elbow at its limit (-3.07 rad); the OSC cannot raise the hand and drifts it toward the base
+# (LIBERO-10 7: the cream cheese 34 cm from the shoulder, 14 cm of drift, the carry stuck). The
+# object is slid out on the table first, then lifted (not one held by its rim: see `act`).
+WRIST_ABOVE = 0.2  # m: the Panda's wrist (link 6) above the grip site of a downward hand
+REACH_MIN = 0.4  # m the lift keeps the wrist from the shoulder (beyond 0.4 m the elbow stayed under -2.77 rad)
+REACH_SLIDE_STEPS = 30  # control steps at most for a slide out to REACH_MIN (1-2 cm a step)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -226,6 +234,7 @@ class Expert:
     self.opening = np.full(n, OPEN)  # how far the fingers open for the approach
     self.carry_z = np.zeros(n)  # the hand's carrying height, fixed when the lift starts
     self.lift_xy, self.lift_z = np.zeros((n, 2)), np.zeros(n)  # where the lift starts going up
+    self.slide_steps = np.full(n, SLIDE_STEPS)  # the most steps the slide there takes
     self.fresh = np.ones(n, bool)
     self.hand_z = np.zeros(n)  # the hand's height at the previous step
     self.still = np.zeros(n, np.int64)  # steps the hand has held still while lowering
@@ -370,11 +379,11 @@ class Expert:
     pull = pull / np.maximum(np.linalg.norm(pull, axis=-1, keepdims=True), 1e-9)
     return np.where(under.any(1)[:, None], pull * ESCAPE, 0.0)
 
-  def _standing(self, t: Task, ids: np.ndarray):
+  def _standing(self, t: Task | int, ids: np.ndarray):
     """(centre [n, g, 3], rotation [n, g, 3, 3], half [g, 3], top [n, g], bottom [n, g]) of the
-    colliding boxes of every object but `t`'s, in the world."""
+    colliding boxes of every object but `t`'s (a task's, or a body id: an articulated step's fixture), in the world."""
     o, a = self._obstacles, self.batch.data
-    keep = o["owner"] != t.body
+    keep = o["owner"] != (t if isinstance(t, (int, np.integer)) else t.body)
     bmat = a["xmat"][ids[:, None], o["body"][keep]].reshape(len(ids), -1, 3, 3)
     gpos = a["xpos"][ids[:, None], o["body"][keep]] + np.einsum("bgij,gj->bgi", bmat, o["centre"][keep])
     gmat = np.einsum("bgij,gjk->bgik", bmat, o["rot"][keep])
@@ -398,7 +407,7 @@ class Expert:
     local = np.einsum("bgji,bpgj->bpgi", gmat, diff)
     return np.linalg.norm(np.maximum(np.abs(local) - half, 0.0), axis=-1)
 
-  def _path_top(self, t: Task, ids: np.ndarray, start: np.ndarray, end: np.ndarray) -> np.ndarray:
+  def _path_top(self, t: Task | int, ids: np.ndarray, start: np.ndarray, end: np.ndarray) -> np.ndarray:
     """[n] the highest top of what stands within the palm's reach of the hand's way from `start` to
     `end` [n, 2] (a basket just filled, beside the next object): the hand passes over it, not
     through its wall dragging it along."""
@@ -407,6 +416,19 @@ class Expert:
     points = start[:, None] + frac[None, :, None] * (end - start)[:, None]
     near = (self._flat_distance(points, gpos, gmat, half) < PALM_HALF_LENGTH).any(1)  # [n, g]
     return np.where(near, top, -np.inf).max(-1)
+
+  def _reach_out(self, ids: np.ndarray, tgt: np.ndarray, top: np.ndarray) -> np.ndarray:
+    """[n, 3] hand goals `tgt` moved out horizontally from the shoulder until the wrist is REACH_MIN
+    from it at every height of the hand from the goal's up to `top` [n] (the lift's way up): a lift
+    near the robot's base otherwise passes the singular folded arm."""
+    shoulder = self.batch.data["xpos"][ids, self._shoulder]
+    low, high = tgt[:, 2] + WRIST_ABOVE - shoulder[:, 2], np.maximum(top, tgt[:, 2]) + WRIST_ABOVE - shoulder[:, 2]
+    dz = np.where((low <= 0) & (high >= 0), 0.0, np.minimum(np.abs(low), np.abs(high)))  # the nearest height
+    need = np.sqrt(np.maximum(REACH_MIN ** 2 - dz ** 2, 0.0))  # the horizontal distance needed
+    flat = tgt[:, :2] - shoulder[:, :2]
+    r = np.linalg.norm(flat, axis=-1)
+    out = flat / np.maximum(r, 1e-9)[:, None] * np.maximum(need - r, 0.0)[:, None]
+    return tgt + np.c_[out, np.zeros(len(ids))]
 
   def _shared(self, k: int) -> bool:
     """Atom k puts its object on a surface region (On) that another atom of the goal also fills:
@@ -553,8 +575,12 @@ class Expert:
       sel = phase == LIFT
       g[sel] = 1.0
       tgt[sel, 2] = carry_z[sel]
-      slide = sel & (np.linalg.norm(self.lift_xy[ids] - hand[ids, :2], axis=-1) > 0.01) & (self.count[ids] < SLIDE_STEPS)
+      slide = sel & (np.linalg.norm(self.lift_xy[ids] - hand[ids, :2], axis=-1) > 0.01) & (
+          self.count[ids] < self.slide_steps[ids])
       tgt[slide] = np.c_[self.lift_xy[ids[slide]], self.lift_z[ids[slide]] + SLIDE_RAISE]
+      rise = sel & ~slide
+      if t.rim is None:  # not a rim grasp: slid by its 3 mm wall, a bowl on LIBERO-Spatial 7's stove slipped out
+        tgt[rise] = self._reach_out(ids[rise], tgt[rise], carry_z[rise])
       sel = phase == CARRY
       g[sel] = 1.0
       tgt[sel] = np.c_[place_xy[sel] - self.offset[ids[sel], :2], carry_z[sel]]
@@ -608,8 +634,14 @@ class Expert:
       self.carry_z[ids[closed]] = (np.maximum(hi[closed, 2], place_top[closed]) + LIFT_CLEARANCE
                                    + (hand[ids[closed], 2] - lo[closed, 2]))
       if closed.any():
-        self.lift_xy[ids[closed]] = hand[ids[closed], :2] + self._escape(t, ids[closed], lo[closed], hi[closed])
-        self.lift_z[ids[closed]] = hand[ids[closed], 2]
+        got = ids[closed]
+        self.lift_xy[got] = hand[got, :2] + self._escape(t, got, lo[closed], hi[closed])
+        self.lift_z[got] = hand[got, 2]
+        out = self.lift_xy[got] if t.rim is not None else self._reach_out(
+            got, np.c_[self.lift_xy[got], self.lift_z[got]], self.carry_z[got])[:, :2]
+        moved = np.linalg.norm(out - self.lift_xy[got], axis=-1) > 0.0
+        self.slide_steps[got] = np.where(moved, REACH_SLIDE_STEPS, SLIDE_STEPS)
+        self.lift_xy[got] = out
       lifted = done & (phase == LIFT)
       self.offset[ids[lifted]] = centre[lifted] - hand[ids[lifted]]
       if lifted.any():  # turned with the hand while carried: square to a region it fits only so
