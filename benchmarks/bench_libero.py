@@ -6,7 +6,8 @@ For one task per suite, both run the benchmark's init states under the same fixe
 sequence (tests/test_libero_engine.actions) with both cameras at 128x128:
 - ours: `engine.LiberoBatch` with `--batch` environments on every core (`nthread=0`), timed per
   control step as physics (controller included), cameras and the goal check; with the cameras
-  drawn as the reference draws them, without multisampling, and without cameras;
+  drawn as the reference draws them and without multisampling, each on render threads and in
+  render processes (one per core), and without cameras;
 - the reference: OffScreenRenderEnv, one process per core (`--workers`), each running its share
   of `--ref-trials` trials as LIBERO's evaluation does (env.reset(), set_init_state, steps), with
   its cameras and with their observables disabled (compared with our state-only batch).
@@ -42,8 +43,11 @@ def actions(steps: int, seed: int) -> np.ndarray:
   return np.concatenate([arm, np.where((t[:, 0] // 8) % 2 == 1, 1.0, -1.0)[:, None]], axis=1)
 
 
-# Our cameras: as the reference draws them; without multisampling; none (state only).
+# Our cameras: as the reference draws them; without multisampling (each on render threads, and in
+# render processes: envs.render_process); none (state only).
 OURS = {"reference_look": dict(render=True), "no_multisampling": dict(render=True, multisample=False),
+        "reference_look_processes": dict(render=True, render_processes=True),
+        "no_multisampling_processes": dict(render=True, multisample=False, render_processes=True),
         "no_cameras": dict(render=False)}
 
 

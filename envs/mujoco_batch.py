@@ -23,9 +23,9 @@ good state, as a NaN does on MJX-Warp.
 
 from __future__ import annotations
 
-import copy
 import os
 import queue
+import subprocess
 import threading
 import time
 
@@ -39,6 +39,7 @@ from flax import struct
 from mujoco import batch as mj_batch
 
 from envs import appearance as appearances
+from envs import render_process
 from envs.env import SOLVER_LIMIT_BITS, TabletopEnv, clipped_ctrl
 from envs.headless import RendererError, renderer_error
 from envs.robot import CAMERAS
@@ -230,27 +231,36 @@ class MujocoBatchEnv:
 
 class CameraRenderer:
   """A batch of states seen by `cameras` (by default our tabletop's two), drawn by `mujoco.Renderer`
-  on worker threads.
+  on `nthread` worker threads, or with `processes=True` in as many worker processes
+  (`envs.render_process`: on a CPU's software OpenGL, threads share the GIL for part of each draw).
 
-  An OpenGL context belongs to the thread that made it, so each worker thread
-  makes, uses and closes its own renderer, on its own copy of the model (a
-  look is written into it before each environment's draw); `close` (or garbage collection)
-  asks the workers to do so. The offscreen buffer is the image size, without
-  multisampling. The constructor waits until every worker has its renderer:
-  one that cannot start (no display for GLFW, no EGL) raises RendererError
-  here, naming the cause, and a worker that dies later makes `render` raise,
-  so that nothing waits on a dead thread.
+  An OpenGL context belongs to the thread that made it, so each worker makes,
+  uses and closes its own renderer (`render_process.Drawer`), on its own copy
+  of the model (a look is written into it before each environment's draw);
+  `close` (or garbage collection) asks the workers to do so. The offscreen
+  buffer is the image size, without multisampling unless asked. The
+  constructor waits until every worker has its renderer: one that cannot
+  start (no display for GLFW, no EGL) raises RendererError here, naming the
+  cause, and a worker that dies later makes `render` raise, so that nothing
+  waits on a dead thread or process.
   """
 
   def __init__(self, model: mujoco.MjModel, image_size, nthread: int, cameras=CAMERAS,
-               flags_off=_RENDER_FLAGS_OFF, multisample: bool = False, hidden_groups=(), max_geom: int = 10000):
+               flags_off=_RENDER_FLAGS_OFF, multisample: bool = False, hidden_groups=(), max_geom: int = 10000,
+               processes: bool = False):
     self._size = tuple(image_size)
     self.cameras = tuple(cameras)
+    self.processes = processes
+    # Drawer's arguments; each worker its own copy of the model, into which looks are written
+    drawer_args = lambda: (render_process.render_model(model, *self._size, multisample), self._size,  # noqa: E731
+                           self.cameras, tuple(flags_off), tuple(hidden_groups), max_geom, appearances.LOOK_FIELDS)
+    self._jobs, self._threads, self._procs = [], [], []
+    if processes:
+      self._start_processes(max(1, nthread), drawer_args())  # pickled: a copy for each process
+      return
     self._jobs = [queue.SimpleQueue() for _ in range(max(1, nthread))]
     started = queue.SimpleQueue()
-    self._threads = [threading.Thread(target=_render_worker,  # each its own copy of the model (looks)
-                                      args=(_render_model(model, *self._size, multisample), self._size, jobs,
-                                            started, self.cameras, tuple(flags_off), tuple(hidden_groups), max_geom),
+    self._threads = [threading.Thread(target=_render_worker, args=(drawer_args(), jobs, started),
                                       daemon=True, name="mujoco-render")
                      for jobs in self._jobs]  # the workers hold no reference to self, so it can be collected
     # Under GLFW (MUJOCO_GL unset or glfw), one renderer first, then the others:
@@ -275,6 +285,32 @@ class CameraRenderer:
       self.close()
       raise renderer_error(errors[0]) from errors[0]
 
+  def _start_processes(self, n: int, drawer_args: tuple) -> None:
+    """Start `n` render processes; raise RendererError, naming the cause, unless each has its renderer."""
+    self._procs = [render_process.start(drawer_args) for _ in range(n)]
+    deadline = time.monotonic() + RENDERER_START_S
+    for proc, conn in self._procs:
+      try:
+        kind, detail = self._answer(proc, conn, deadline)
+      except RendererError:
+        self.close()
+        raise
+      if kind != "ready":
+        self.close()
+        raise renderer_error(RuntimeError(f"in a render process: {detail.strip()}"))
+
+  def _answer(self, proc, conn, deadline: float | None = None):
+    """A render process's next message; RendererError if it dies first or misses `deadline`."""
+    while not conn.poll(1.0):
+      if proc.poll() is not None:
+        raise RendererError(f"a MuJoCo render process died without an answer (exit code {proc.returncode})")
+      if deadline is not None and time.monotonic() > deadline:
+        raise renderer_error(None, f"did not start within {RENDERER_START_S:.0f} s")
+    try:
+      return conn.recv()
+    except EOFError:
+      raise RendererError(f"a MuJoCo render process closed its socket (exit code {proc.poll()})") from None
+
   def render(self, qpos: np.ndarray, ids: np.ndarray, out: dict | None = None, looks: dict | None = None) -> dict:
     """Draw simulations `ids` (from their qpos rows) into `out` ({camera: [B, H, W, 3]}).
 
@@ -282,13 +318,37 @@ class CameraRenderer:
     visual fields for simulation i; None draws the model as it is."""
     if out is None:
       out = {c: np.zeros((qpos.shape[0],) + self._size + (3,), np.uint8) for c in self.cameras}
+    workers = len(self._procs) if self.processes else len(self._jobs)
+    if not workers:
+      raise RendererError("the renderer is closed")
+    chunks = [c for c in np.array_split(np.asarray(ids), workers) if c.size]
+    if self.processes:
+      return self._render_in_processes(qpos, chunks, out, looks)
     done = queue.SimpleQueue()
-    chunks = [c for c in np.array_split(ids, len(self._jobs)) if c.size]
     for jobs, chunk in zip(self._jobs, chunks):
       jobs.put((qpos, chunk, out, looks, done))
     errors = [e for e in (self._wait(done) for _ in chunks) if e is not None]
     if errors:
       raise errors[0]
+    return out
+
+  def _render_in_processes(self, qpos: np.ndarray, chunks: list, out: dict, looks: dict | None) -> dict:
+    for (proc, conn), chunk in zip(self._procs, chunks):
+      try:
+        conn.send((np.ascontiguousarray(qpos[chunk]),
+                   None if looks is None else {f: v[chunk] for f, v in looks.items()}))
+      except OSError as e:
+        raise RendererError(f"a MuJoCo render process died: its socket is closed (exit code {proc.poll()})") from e
+    errors = []
+    for (proc, conn), chunk in zip(self._procs, chunks):
+      kind, detail = self._answer(proc, conn)
+      if kind == "images":
+        for c in self.cameras:
+          out[c][chunk] = detail[c]
+      else:
+        errors.append(detail)
+    if errors:
+      raise RendererError(f"a MuJoCo render process failed: {errors[0].strip()}")
     return out
 
   def _wait(self, done: queue.SimpleQueue):
@@ -304,65 +364,39 @@ class CameraRenderer:
     for jobs in getattr(self, "_jobs", ()):
       jobs.put(None)
     self._jobs = []
+    procs, self._procs = getattr(self, "_procs", []), []
+    for proc, conn in procs:
+      try:
+        conn.send(None)
+      except (OSError, ValueError):  # its pipe is closed already
+        pass
+    for proc, conn in procs:
+      try:
+        proc.wait(timeout=10)
+      except subprocess.TimeoutExpired:
+        proc.kill()
+        proc.wait()
+      conn.close()
 
   def __del__(self):
     self.close()
 
 
-def _render_worker(model: mujoco.MjModel, size, jobs: queue.SimpleQueue, started: queue.SimpleQueue,
-                   cameras=CAMERAS, flags_off=_RENDER_FLAGS_OFF, hidden_groups=(), max_geom=10000) -> None:
-  """Make a renderer and tell `started` (None, or the exception), then draw jobs until None."""
-  renderer = None
+def _render_worker(drawer_args: tuple, jobs: queue.SimpleQueue, started: queue.SimpleQueue) -> None:
+  """Make a Drawer and tell `started` (None, or the exception), then draw jobs until None."""
   try:
-    renderer = mujoco.Renderer(model, *size, max_geom=max_geom)
-    for flag in flags_off:
-      renderer.scene.flags[getattr(mujoco.mjtRndFlag, flag)] = 0
-    option = mujoco.MjvOption()
-    for group in hidden_groups:
-      option.geomgroup[group] = 0
-    data = mujoco.MjData(model)
-    cam_ids = [model.camera(c).id for c in cameras]
-    own = {f: getattr(model, f)[None].copy() for f in appearances.LOOK_FIELDS}  # the model's look, as row 0
+    drawer = render_process.Drawer(*drawer_args)
   except Exception as e:  # noqa: BLE001  handed to the caller's thread
-    if renderer is not None:
-      renderer.close()
     started.put(e)
     return
   started.put(None)
-  shifted = False  # the model holds another look than its own
   try:
     while (job := jobs.get()) is not None:
       qpos, ids, out, looks, done = job
       try:
-        if looks is None and shifted:
-          _set_look(model, own, 0)
-        shifted = looks is not None
-        for i in ids:
-          if looks is not None:
-            _set_look(model, looks, i)
-          data.qpos[:] = qpos[i]
-          mujoco.mj_kinematics(model, data)
-          mujoco.mj_camlight(model, data)
-          for cam, cid in zip(cameras, cam_ids):
-            renderer.update_scene(data, cid, scene_option=option)
-            out[cam][i] = renderer.render()
+        drawer.draw(qpos, ids, out, looks)
         done.put(None)
       except Exception as e:  # noqa: BLE001  handed to the caller's thread
         done.put(e)
   finally:
-    renderer.close()
-
-
-def _set_look(model: mujoco.MjModel, look: dict, i) -> None:
-  """Write row `i` of each field of `look` into the model (only rendering reads these fields)."""
-  for f, v in look.items():
-    getattr(model, f)[:] = v[i]
-
-
-def _render_model(model: mujoco.MjModel, h: int, w: int, multisample: bool = False) -> mujoco.MjModel:
-  """A copy of `model` whose offscreen buffer is the image size, without multisampling unless asked."""
-  m = copy.copy(model)
-  m.vis.global_.offwidth, m.vis.global_.offheight = w, h
-  if not multisample:
-    m.vis.quality.offsamples = 0
-  return m
+    drawer.close()

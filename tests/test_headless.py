@@ -21,7 +21,7 @@ import numpy as np
 import pytest
 
 import envs
-from envs import headless
+from envs import appearance, headless
 from envs.mujoco_batch import CameraRenderer
 from skillplug_jax import startup
 from skillplug_jax.data import loader, rlds
@@ -142,6 +142,62 @@ def test_a_renderer_thread_that_dies_is_an_error_not_a_wait():
     cams.render(qpos, np.arange(2))
   assert time.monotonic() - t0 < 10
   cams.close()
+
+
+def test_render_processes_draw_what_threads_draw_with_and_without_looks():
+  """processes=True (envs.render_process) is the same drawing in other processes: the same pixels,
+  looks included, and back to the model's own look after a looked draw."""
+  env = envs.make("jujube_pick", num_envs=3, backend="mujoco")
+  model = env.env.mj_model
+  qpos = np.tile(model.qpos0, (3, 1))
+  looks = {f: np.repeat(np.asarray(getattr(model, f))[None], 3, 0) for f in appearance.LOOK_FIELDS}
+  looks["geom_rgba"][1, :, :3] = 1.0 - looks["geom_rgba"][1, :, :3]  # trial 1 in other colours
+  drawn = {}
+  for processes in (False, True):
+    cams = CameraRenderer(model, (16, 16), nthread=2, processes=processes)
+    try:
+      drawn[processes] = [{c: a.copy() for c, a in cams.render(qpos, ids, looks=lk).items()}
+                          for ids, lk in ((np.arange(3), None), (np.arange(3), looks), (np.array([0, 2]), None))]
+    finally:
+      cams.close()
+  for threads, procs in zip(drawn[False], drawn[True]):
+    for c in threads:
+      np.testing.assert_array_equal(procs[c], threads[c], err_msg=c)
+  plain, looked, after = drawn[True]
+  assert plain["side"].std() > 0 and np.abs(looked["side"][1].astype(int) - plain["side"][1]).mean() > 5
+  for c in plain:
+    np.testing.assert_array_equal(looked[c][[0, 2]], plain[c][[0, 2]], err_msg=c)
+    np.testing.assert_array_equal(after[c][[0, 2]], plain[c][[0, 2]], err_msg=c)
+    assert not after[c][1].any()  # not asked for: left as it was (zeros)
+
+
+def test_a_render_process_that_dies_is_an_error_not_a_wait():
+  env = envs.make("jujube_pick", num_envs=2, backend="mujoco")
+  cams = CameraRenderer(env.env.mj_model, (16, 16), nthread=2, processes=True)
+  qpos = np.tile(env.env.mj_model.qpos0, (2, 1))
+  assert cams.render(qpos, np.arange(2))["side"].std() > 0
+  proc, _ = cams._procs[1]
+  proc.kill()  # as one that crashed
+  proc.wait(10)
+  t0 = time.monotonic()
+  with pytest.raises(headless.RendererError, match="render process (died|closed its socket)"):
+    cams.render(qpos, np.arange(2))
+  assert time.monotonic() - t0 < 10
+  cams.close()
+  with pytest.raises(headless.RendererError, match="closed"):
+    cams.render(qpos, np.arange(2))
+
+
+def test_a_render_process_that_cannot_start_names_the_cause(monkeypatch):
+  """GLFW with no display, in the render process: the caller gets the named error, not a wait."""
+  env = envs.make("jujube_pick", num_envs=2, backend="mujoco")
+  monkeypatch.setenv("MUJOCO_GL", "glfw")  # what the process inherits
+  for name in ("DISPLAY", "WAYLAND_DISPLAY", "PYOPENGL_PLATFORM"):
+    monkeypatch.delenv(name, raising=False)
+  t0 = time.monotonic()
+  with pytest.raises(headless.RendererError, match=r"could not start \(MUJOCO_GL=glfw; no DISPLAY.*in a render process"):
+    CameraRenderer(env.env.mj_model, (16, 16), nthread=1, processes=True)
+  assert time.monotonic() - t0 < 60
 
 
 def test_choose_gl_picks_a_headless_platform(monkeypatch):

@@ -55,11 +55,12 @@ class LiberoBatch:
   """`num_envs` copies of a LIBERO task's scene (`envs.libero.scene`), reset from benchmark init
   states and stepped with LIBERO actions [B, 7]; on `nthread` threads (0: every core). With
   `render=True`, `observe()` also draws LIBERO's two cameras (`image_size` square), as the
-  reference renderer draws them, one renderer per thread; `multisample=False` draws them without
-  the MJCF's 4x multisampling, 2.3x faster on a CPU's software GL, the edges a little harder."""
+  reference renderer draws them, one renderer per thread (`render_processes=True`: per process,
+  which a CPU's software GL draws faster, docs/libero.md "Speed"); `multisample=False` draws them
+  without the MJCF's 4x multisampling, 2.3x faster on a CPU's software GL, the edges a little harder."""
 
   def __init__(self, scene: scenes.Scene, num_envs: int, nthread: int = 0, render: bool = False,
-               image_size: int = IMAGE_SIZE, multisample: bool = True):
+               image_size: int = IMAGE_SIZE, multisample: bool = True, render_processes: bool = False):
     if "controller" not in scene.meta:
       raise ValueError(f"scene {scene.xml_path} has no controller parameters: built by an older scene.py")
     self.scene = scene
@@ -86,7 +87,8 @@ class LiberoBatch:
     if render:
       from envs.mujoco_batch import CameraRenderer  # OpenGL only where images are asked for
       self._cameras = CameraRenderer(self.model, (image_size, image_size), self._batch.nthread,
-                                     cameras=scenes.CAMERAS, **{**_REFERENCE_LOOK, "multisample": multisample})
+                                     cameras=scenes.CAMERAS, processes=render_processes,
+                                     **{**_REFERENCE_LOOK, "multisample": multisample})
 
   def _reset_pose_reading(self) -> osc.ArmState:
     """What robosuite's controller has cached when set_init_state returns: the robot at its reset pose
