@@ -333,22 +333,28 @@ class CameraRenderer:
     return out
 
   def _render_in_processes(self, qpos: np.ndarray, chunks: list, out: dict, looks: dict | None) -> dict:
-    for (proc, conn), chunk in zip(self._procs, chunks):
-      try:
-        conn.send((np.ascontiguousarray(qpos[chunk]),
-                   None if looks is None else {f: v[chunk] for f, v in looks.items()}))
-      except OSError as e:
-        raise RendererError(f"a MuJoCo render process died: its socket is closed (exit code {proc.poll()})") from e
-    errors = []
-    for (proc, conn), chunk in zip(self._procs, chunks):
-      kind, detail = self._answer(proc, conn)
-      if kind == "images":
-        for c in self.cameras:
-          out[c][chunk] = detail[c]
-      else:
-        errors.append(detail)
-    if errors:
-      raise RendererError(f"a MuJoCo render process failed: {errors[0].strip()}")
+    """Each process draws its chunk; after a failure the renderer closes (an unread answer would
+    otherwise be taken for the next call's images)."""
+    try:
+      for (proc, conn), chunk in zip(self._procs, chunks):
+        try:
+          conn.send((np.ascontiguousarray(qpos[chunk]),
+                     None if looks is None else {f: v[chunk] for f, v in looks.items()}))
+        except OSError as e:
+          raise RendererError(f"a MuJoCo render process died: its socket is closed (exit code {proc.poll()})") from e
+      errors = []
+      for (proc, conn), chunk in zip(self._procs, chunks):
+        kind, detail = self._answer(proc, conn)
+        if kind == "images":
+          for c in self.cameras:
+            out[c][chunk] = detail[c]
+        else:
+          errors.append(detail)
+      if errors:
+        raise RendererError(f"a MuJoCo render process failed: {errors[0].strip()}")
+    except RendererError:
+      self.close()
+      raise
     return out
 
   def _wait(self, done: queue.SimpleQueue):
