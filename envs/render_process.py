@@ -2,9 +2,10 @@
 
 `Drawer` is the drawing itself, used by `envs.mujoco_batch.CameraRenderer`'s worker threads and,
 with `processes=True`, by the processes `serve` runs in. Why processes: on a CPU, software
-OpenGL (Mesa's llvmpipe) holds Python's GIL for part of each draw, so two render threads draw
-LIBERO's 128x128 images 1.6x as fast as one, not 2x (docs/libero.md, "Speed"); processes share
-no GIL. This module imports MuJoCo and numpy only, so a process starts (spawn) without JAX.
+OpenGL (Mesa's llvmpipe) holds Python's GIL for part of each draw (on one VM two render threads
+drew LIBERO's 128x128 images 1.6x as fast as one, not 2x); processes share no GIL. Measured
+beside threads, they give -4% to +18% episodes/s (docs/libero.md, "Speed"). This module imports
+MuJoCo and numpy only, so a render process starts without JAX.
 """
 
 from __future__ import annotations
