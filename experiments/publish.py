@@ -118,9 +118,10 @@ def routing_file(r: dict) -> Path | None:
   """Where a result's routing array is: beside its run, or (a reference's) where it was published."""
   if r.get("routing_file") and Path(r["routing_file"]).exists():
     return Path(r["routing_file"])
-  if r.get("reference"):
+  if r.get("reference"):  # named as `publish` names it: an arm's with its variant first
+    arm = f"{r['variant']}_" if r.get("variant") else ""
     published = Path(r["reference"]).parent / "routing" / (
-        f"{r['config']['model.policy']}_seed{r['train_seed']}_pretrain_{_in_name(r['task'])}.npz")
+        f"{arm}{r['config']['model.policy']}_seed{r['train_seed']}_pretrain_{_in_name(r['task'])}.npz")
     return published if published.exists() else None
   return None
 

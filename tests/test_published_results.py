@@ -39,3 +39,16 @@ def test_an_old_run_directory_loads_with_the_plug_nested():
     assert cfg.model.plug.num_skills == flat["model"]["num_skills"]
     assert cfg.model.plug.site == flat["model"].get("plug_site", "encoder")
     assert groups.normalised(groups.training_key(cfg)) == groups.training_key(cfg)
+
+
+def test_a_published_arms_routing_arrays_are_found_when_it_is_a_reference():
+  """An arm's arrays are published under its variant's name (`publish.publish`): a summary read
+  back as a reference finds them, so the arm's routing entropy is tabulated across sessions."""
+  path = DOCS / "libero" / "cpu_object_40k_seed0_2026-12-07" / "summary.json"
+  results = publish.reference_results(str(path), "pretrain")
+  plug = [r for r in results if r["config"]["model.policy"] == "skillplug"]
+  assert len(plug) == 10 and all(r["variant"] == "object" for r in plug)
+  files = [publish.routing_file(r) for r in plug]
+  assert all(f is not None and f.name.startswith("object_skillplug_seed0_pretrain_") for f in files)
+  published = json.loads(path.read_text())["variants"][0]["routing_entropy_per_query"]
+  assert abs(publish.routing_entropy(plug) - published) < 1e-6
