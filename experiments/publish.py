@@ -47,7 +47,8 @@ def libero_tables(stage: dict, tasks) -> dict:
   def policy(config):
     return name_of[groups.key_id({f: v for f, v in config.items() if f not in SUITE_FIELDS})]
   rows = [dict(r, policy=policy(r["config"]), seed=r["train_seed"]) for r in stage["results"]]
-  return {m: libero.tables_of(rows, tasks, m) for m in libero.MEASURES}
+  progress = (libero.PROGRESS,) if all(f"{libero.PROGRESS}_rate" in r for r in rows) else ()
+  return {m: libero.tables_of(rows, tasks, m) for m in libero.MEASURES + progress}
 
 
 def libero_report(stage: dict, name: str) -> str:
@@ -60,7 +61,10 @@ def libero_report(stage: dict, name: str) -> str:
                     "images) are its table's, not this run:", "",
                     libero.markdown(t["libero_success"]["per_suite"], paper=name), "",
                     "Per suite, our rule (placed, released, held 0.5 s: the tables above), %:", "",
-                    libero.markdown(t["success"]["per_suite"])])
+                    libero.markdown(t["success"]["per_suite"])]
+                   + (["", "How far the trials got: the goal's atoms (LIBERO-10's: mostly both objects placed) "
+                       "that held at some step within the limit, each on its own, % of atoms and trials:", "",
+                       libero.markdown(t[libero.PROGRESS]["per_suite"])] if libero.PROGRESS in t else []))
 
 
 def reference_results(path: str, stage: str) -> list[dict]:

@@ -417,6 +417,14 @@ def test_libero_arms_one_per_suite_are_one_row_of_the_papers_table():
   per_suite = stage["libero"]["libero_success"]["per_suite"]
   assert list(per_suite["rows"]) == ["ACT"]  # ... one row of the paper's table, a column per suite
   assert per_suite["rows"]["ACT"]["cells"] == {"Object": (50.0, None), "Goal": (25.0, None), "Avg.": (37.5, None)}
+  assert "atoms_reached" not in stage["libero"]  # results from before progress was recorded
+  # with it: the share of goal atoms reached, per suite, and a table of it in the report
+  progress = [dict(r, atoms_reached_rate=0.5 * r["success_rate"] + 0.5) for r in results]
+  stage = publish.merged_summary([dict(pretrain=progress)], "pretrain", tasks,
+                                 row_tasks=lambda key: envs.taskset(key["taskset"])[:1])
+  cells = stage["libero"]["atoms_reached"]["per_suite"]["rows"]["ACT"]["cells"]
+  assert cells == {"Object": (75.0, None), "Goal": (62.5, None), "Avg.": (68.75, None)}
+  assert "| ACT | 75.0 | 62.5 | 68.8 |" in publish.libero_report(stage, "pretrain")
 
 
 def test_queries_tables_per_seed_and_over_paired_trials():

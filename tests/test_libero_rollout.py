@@ -45,6 +45,8 @@ def test_the_experts_actions_replayed_as_a_policy_succeed_as_the_expert(expert_a
   assert row["trial_success"] == [True] * TRIALS and row["trial_libero_success"] == [True] * TRIALS
   assert expert.run("libero_object", 1, trials=TRIALS, nthread=1)["success"] == 1.0
   assert row["abbr"] == "O1" and row["median_steps"] < row["time_limit"]
+  assert row["goal_atoms"] == ["In(cream_cheese_1, basket_1_contain_region)"]
+  assert row["trial_atoms_reached"] == [[True]] * TRIALS and row["atoms_reached_rate"] == 1.0
 
 
 def test_holding_on_is_libero_success_but_not_ours(expert_actions):
@@ -60,6 +62,17 @@ def test_a_still_arm_succeeds_by_neither_rule():
   still = np.tile(rollout.REST, (1, TRIALS, 1)).astype(np.float32)
   r = rollout.run_trials(TASK, replay(still), trials=TRIALS, nthread=1)
   assert not r.libero_success.any() and not r.success.any()
+  assert r.atoms_reached.shape == (TRIALS, 1) and not r.atoms_reached.any()
+
+
+def test_the_goals_atoms_are_reached_each_on_its_own():
+  """LIBERO-10 8 (both moka pots on the stove) starts with its stove on: a still arm reaches that
+  atom and neither placement, and the trial fails."""
+  still = np.tile(rollout.REST, (1, 1, 1)).astype(np.float32)
+  r = rollout.run_trials("libero_10:8", replay(still), trials=1, nthread=1)
+  assert r.atoms == ("On(moka_pot_1, flat_stove_1_cook_region)", "On(moka_pot_2, flat_stove_1_cook_region)",
+                     "TurnOn(flat_stove_1)")
+  assert r.atoms_reached.tolist() == [[False, False, True]] and not r.libero_success.any()
 
 
 def test_a_camera_policy_reads_both_cameras_at_its_size(expert_actions):
@@ -88,6 +101,18 @@ def test_the_suite_table_averages_tasks_per_seed_then_suites():
   assert cells["Object"] == (50.0, 0.0) and cells["Goal"] == (100.0, 0.0)
   assert cells["Avg."] == (75.0, 0.0)
   assert "| p | 50.0 ± 0.0 | 100.0 ± 0.0 | 75.0 ± 0.0 |" in libero_eval.markdown(table)
+
+
+def test_the_report_says_how_far_failed_trials_got():
+  results = [dict(policy="p", seed=0, task=t, success_rate=0.0, libero_success_rate=0.0, atoms_reached_rate=rate)
+             for t, rate in (("libero_10:0", 0.5), ("libero_10:8", 1 / 3))]
+  tasks = ["libero_10:0", "libero_10:8"]
+  out = {"trials": 2, "tables": {m: libero_eval.tables_of(results, tasks, m)
+                                 for m in libero_eval.MEASURES + (libero_eval.PROGRESS,)}}
+  text = libero_eval.report(out)
+  assert "| p | 0.0 | 0.0 |" in text and "| p | 41.7 | 41.7 |" in text.split("How far the trials got")[1]
+  with pytest.raises(ValueError, match="unknown measure 'atoms'"):
+    libero_eval.tables_of(results, tasks, "atoms")
 
 
 def test_the_papers_rows_stand_beside_ours_in_our_columns():

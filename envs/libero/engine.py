@@ -236,6 +236,10 @@ class LiberoBatch:
     """[B] bool: the task's goal holds (LIBERO's _check_success after the last step or the reset)."""
     return predicates.satisfied(self.goal, self.goal_inputs())
 
+  def goal_atoms(self) -> np.ndarray:
+    """[B, atoms] bool: each atom of the goal (`predicates.atom_values`); the goal holds where all do."""
+    return predicates.atom_values(self.goal, self.goal_inputs())
+
   @property
   def data(self) -> dict:
     """The bound arrays (live views, [B, ...]) of the batch: qpos, qvel, xpos, xquat, site_xpos, ..."""

@@ -290,6 +290,12 @@ def atom_values(goal: Goal, s: GoalInputs) -> np.ndarray:
   return np.stack([_TESTS[a.test](a, s) for a in goal.atoms], axis=-1)
 
 
+def atom_name(atom: Atom) -> str:
+  """An atom as the BDDL writes it: `In(akita_black_bowl_1, basket_1_contain_region)`."""
+  names = {"turnon": "TurnOn", "turnoff": "TurnOff"}
+  return f"{names.get(atom.predicate, atom.predicate.capitalize())}({', '.join(atom.args)})"
+
+
 def satisfied(goal: Goal, s: GoalInputs) -> np.ndarray:
   """[B] bool: the goal holds (every atom), as LIBERO's `_check_success`."""
   return atom_values(goal, s).all(axis=-1)

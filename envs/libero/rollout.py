@@ -9,12 +9,14 @@ two cameras at the controller's `image_size`, and the task's instruction as the 
 controller asks for, `Controller.instruction`) and returns LIBERO actions [B, 7], then one
 batched step of the C engine. A policy trained on our LIBERO datasets runs here unchanged.
 
-Two outcomes per trial:
+Two outcomes per trial, and how far it got:
 - `libero_success`: LIBERO's own rule, the goal's predicate at any step within the limit (its
   evaluation ends the episode there: the field's published numbers count this);
 - `success`, ours: the goal holds, and keeps holding for `HOLD_STEPS` consecutive steps (0.5 s)
   with the gripper commanded open and its fingers open (`RELEASED_GAP`), the first of them
-  within the limit: placed and let go, not still held in the hand.
+  within the limit: placed and let go, not still held in the hand;
+- `atoms_reached`: which atoms of the goal (LIBERO-10's are mostly two: both objects placed) held
+  at some step within the limit, each on its own: the progress of a trial that fails.
 """
 
 from __future__ import annotations
@@ -25,7 +27,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from envs.libero import engine, layout, suites
+from envs.libero import engine, layout, predicates, suites
 from envs.libero import scene as scenes
 from envs.libero.expert import HOLD_STEPS  # 0.5 s at 20 Hz: the experts' rule, and a policy's
 from envs.rollout import Controller, _jitted
@@ -48,6 +50,8 @@ class Trials(NamedTuple):
   frames: list | None = None  # agentview [T_i + 1, H, W, 3] uint8 of the first trials: start to end
   queries: np.ndarray | None = None  # [B] policy queries made before the trial ended
   routing: np.ndarray | None = None  # [T, B, K] the router's weights at each query (NaN where none)
+  atoms_reached: np.ndarray | None = None  # [B, atoms] bool: each atom of the goal held at some step within the limit
+  atoms: tuple[str, ...] = ()  # the goal's atoms, as the BDDL writes them (`predicates.atom_name`)
 
 
 def run_trials(name: str, controller: Controller, trials: int = suites.INIT_STATES_PER_TASK, first: int = 0,
@@ -103,6 +107,7 @@ def _loop(batch: engine.LiberoBatch, task: suites.Task, controller: Controller, 
   act, w = _jitted(controller.act), controller.weights
   cstate = _jitted(controller.init)(state)
   first = np.full(n, -1)
+  reached = np.zeros((n, len(batch.goal.atoms)), bool)
   declared = np.full(n, -1)
   held = np.zeros(n, np.int64)
   queries = np.zeros(n, np.int32)
@@ -119,7 +124,9 @@ def _loop(batch: engine.LiberoBatch, task: suites.Task, controller: Controller, 
     if t >= limit:  # past the limit only a hold already under way may finish: the arm rests
       actions = rest
     batch.step(actions)
-    ok = batch.success()
+    atoms = batch.goal_atoms()
+    ok = atoms.all(axis=-1)
+    reached |= atoms & (t < limit)
     obs, raw = _observe(batch, cameras, frames)
     gap = obs["gripper_qpos"][:, 0] - obs["gripper_qpos"][:, 1]
     first[(first < 0) & ok & (t < limit)] = t
@@ -139,4 +146,5 @@ def _loop(batch: engine.LiberoBatch, task: suites.Task, controller: Controller, 
     clip = [stack[:ends[i] + 1, i] for i in range(frames)]
   return Trials(success=declared >= 0, libero_success=first >= 0, first_success_step=first,
                 declared_step=declared, steps_run=t, frames=clip, queries=queries,
-                routing=routing[:t] if routing is not None else None)
+                routing=routing[:t] if routing is not None else None, atoms_reached=reached,
+                atoms=tuple(predicates.atom_name(a) for a in batch.goal.atoms))

@@ -26,6 +26,9 @@ from envs.rollout import Controller
 from skillplug_jax.evaluate import protocol, tables
 
 MEASURES = ("libero_success", "success")  # LIBERO's rule, ours
+# How far the trials got: the share of the goal's atoms held at some step within the limit (each on
+# its own), over atoms and trials. Results from before it was recorded lack it (`has_progress`).
+PROGRESS = "atoms_reached"
 # The paper's LIBERO table (tab:libero_oft_mt: OpenVLA-OFT, K = 8, 3 seeds, 50 trials per task, mean
 # and SE %), by stage: multi-task per suite; few-shot after pretraining on Long, 5 demos per task.
 # Its backbone is a 7B vision-language-action model trained on LIBERO's human demonstrations, with
@@ -62,6 +65,8 @@ def evaluate_task(name: str, controller: Controller, trials: int = suites.INIT_S
               success_rate=float(success.mean()), successes=int(success.sum()),
               libero_success_rate=float(r.libero_success.mean()),
               trial_success=success.tolist(), trial_libero_success=r.libero_success.tolist(),
+              goal_atoms=list(r.atoms),
+              atoms_reached_rate=float(r.atoms_reached.mean()), trial_atoms_reached=r.atoms_reached.tolist(),
               trial_queries=r.queries.tolist(), trial_success_step=r.declared_step.tolist(),
               mean_queries_success=float(r.queries[success].mean()) if success.any() else None,
               mean_steps_success=float(r.declared_step[success].mean()) if success.any() else None,
@@ -78,7 +83,7 @@ def evaluate(policies: Mapping[str, Sequence[Controller]], tasks: Sequence[str],
   jobs = [(p, s, t) for p, seeds in policies.items() for s in range(len(seeds)) for t in tasks]
   for policy, seed, task in tqdm(jobs, desc="LIBERO trials", unit="task", file=sys.stderr, disable=not progress):
     results.append({"policy": policy, "seed": seed, **evaluate_task(task, policies[policy][seed], trials)})
-  return {"results": results, "tables": {m: tables_of(results, tasks, m) for m in MEASURES}}
+  return {"results": results, "tables": {m: tables_of(results, tasks, m) for m in MEASURES + (PROGRESS,)}}
 
 
 def evaluate_runs(run_dirs: Sequence[str | Path], tasks: Sequence[str], trials: int = suites.INIT_STATES_PER_TASK,
@@ -100,7 +105,7 @@ def evaluate_runs(run_dirs: Sequence[str | Path], tasks: Sequence[str], trials: 
     row = fields[run]
     results.append({"policy": name_of[groups.key_id(row["config"])], "seed": row["train_seed"], "run": str(run), **r})
   return {"trials": trials, "results": results, "rows": rows,
-          "tables": {m: tables_of(results, tasks, m) for m in MEASURES}}
+          "tables": {m: tables_of(results, tasks, m) for m in MEASURES + (PROGRESS,)}}
 
 
 def report(out: dict) -> str:
@@ -120,14 +125,17 @@ def report(out: dict) -> str:
         lines.append(f"| {policy} | " + " | ".join("-" if c is None else f"{c[0]:.0f}" if c[1] is None
                                                    else f"{c[0]:.0f} ± {c[1]:.0f}" for c in cells) + " |")
       lines.append("")
+  if PROGRESS in out["tables"]:
+    lines += ["**How far the trials got**: the goal's atoms that held at some step within the limit, each on "
+              "its own, % of atoms and trials:", "", markdown(out["tables"][PROGRESS]["per_suite"]), ""]
   return "\n".join(lines)
 
 
 def tables_of(results: Sequence[dict], tasks: Sequence[str], measure: str = "libero_success") -> dict:
   """The per-task table and the paper's per-suite table of `measure` ("libero_success" or
   "success"), from `evaluate`'s results."""
-  if measure not in MEASURES:
-    raise ValueError(f"unknown measure {measure!r}; measures: {', '.join(MEASURES)}")
+  if measure not in MEASURES + (PROGRESS,):
+    raise ValueError(f"unknown measure {measure!r}; measures: {', '.join(MEASURES + (PROGRESS,))}")
   key = f"{measure}_rate"
   rates: dict = {}
   for r in results:
