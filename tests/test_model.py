@@ -586,3 +586,22 @@ def test_libero_cpus_adapter_is_the_routers_size():
   p = jax.eval_shape(Policy(cfg).init, jax.random.key(0), make_batch(cfg))["params"]
   count = lambda tree: sum(int(np.prod(x.shape)) for x in jax.tree.leaves(tree))  # noqa: E731
   assert (count(p["adapter"]), count(p["router"])) == (4707, 4680)
+
+
+def test_libero_cpus_multi_task_adapter_is_the_plugs_size():
+  """libero_cpu's goal_act_adapter arm: ACT with an adapter as large as what the plug adds at
+  inference (skills, interactor, router; within 0.2%), trained multi-task from scratch."""
+  from experiments.configs import libero_cpu
+  exp = experiment.get("libero_cpu")
+  arm = next(v for v in exp.variants if v.name == "goal_act_adapter")
+  assert f"train.model.adapter_width={libero_cpu.PLUG_SIZED_ADAPTER}" in arm.overrides
+  assert "policies=act" in arm.overrides and "train.taskset=libero_goal" in arm.overrides
+  base = dataclasses.replace(exp.train_config("skillplug", 0).model, use_images=False, proprio=("joint_pos",),
+                             joint_dim=7, instruction_vocab=0)
+  count = lambda tree: sum(int(np.prod(x.shape)) for x in jax.tree.leaves(tree))  # noqa: E731
+  shapes = lambda cfg: jax.eval_shape(Policy(cfg).init, jax.random.key(0), make_batch(cfg))["params"]  # noqa: E731
+  plug = shapes(base)
+  added = sum(count(plug[g]) for g in ("skills", "interactor", "router"))
+  act = shapes(dataclasses.replace(base, policy="act", adapter_width=libero_cpu.PLUG_SIZED_ADAPTER))
+  assert set(act) == {"cvae", "encoder", "action_head", "adapter"}
+  assert abs(count(act["adapter"]) - added) / added < 0.002 and added == 59336

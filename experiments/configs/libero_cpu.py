@@ -25,6 +25,12 @@ Arms (each trains its own runs unless it adapts another's):
            head and an adapter of the router's size (width 35: 4,707
            parameters against the router's 4,680 at K = 8), so that a gain
            of the plug can be told from extra tuned capacity
+  goal_act_adapter   (ours) multi-task ACT on LIBERO-Goal with an adapter of
+           the plug's size between encoder and decoder, where the plug sits
+           (width 459: 59,403 parameters against the skills', interactor's
+           and router's 59,336; the posterior's 32,544 act in training only),
+           trained from scratch: whether the plug's multi-task gain on Goal
+           (docs/measurements/libero.md) is more than extra capacity
 
 Run one arm at a time with `make libero-cpu VARIANTS=long` (it resumes).
 """
@@ -39,6 +45,7 @@ from skillplug_jax.train.config import TrainConfig
 STEPS = 40_000
 LIBERO_PROPRIO = ("joint_pos", "gripper_qpos", "eef_pos", "eef_quat")
 ADAPTER = "model.adapter_width=35"  # 129 w + 192 parameters at hidden 64: 4,707 (the router: 4,680)
+PLUG_SIZED_ADAPTER = 459  # 59,403 parameters: the plug's skills, interactor and router have 59,336
 
 
 def get_config() -> Experiment:
@@ -59,4 +66,7 @@ def get_config() -> Experiment:
           Variant("long_act_adapter", ("policies=act", "fewshot.trainable.act=action_head,adapter",
                                        f"fewshot.train_overrides={ADAPTER}"),
                   "ACT, action head + adapter of the router's size (ours)", adapts="long"),
+          Variant("goal_act_adapter", ("train.taskset=libero_goal", "run_fewshot=false", "policies=act",
+                                       f"train.model.adapter_width={PLUG_SIZED_ADAPTER}"),
+                  "ACT with an adapter of the plug's size, multi-task on LIBERO-Goal (ours)"),
       ))
