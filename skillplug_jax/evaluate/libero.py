@@ -27,7 +27,8 @@ from skillplug_jax.evaluate import protocol, tables
 
 MEASURES = ("libero_success", "success")  # LIBERO's rule, ours
 # How far the trials got: the share of the goal's atoms held at some step within the limit (each on
-# its own), over atoms and trials. Results from before it was recorded lack it (`has_progress`).
+# its own), over atoms and trials. Results from before it was recorded lack it, and a summary of
+# them leaves its table out (`experiments.publish.libero_tables`).
 PROGRESS = "atoms_reached"
 # The paper's LIBERO table (tab:libero_oft_mt: OpenVLA-OFT, K = 8, 3 seeds, 50 trials per task, mean
 # and SE %), by stage: multi-task per suite; few-shot after pretraining on Long, 5 demos per task.
@@ -132,8 +133,8 @@ def report(out: dict) -> str:
 
 
 def tables_of(results: Sequence[dict], tasks: Sequence[str], measure: str = "libero_success") -> dict:
-  """The per-task table and the paper's per-suite table of `measure` ("libero_success" or
-  "success"), from `evaluate`'s results."""
+  """The per-task table and the paper's per-suite table of `measure` ("libero_success",
+  "success", or `PROGRESS`: the share of goal atoms reached), from `evaluate`'s results."""
   if measure not in MEASURES + (PROGRESS,):
     raise ValueError(f"unknown measure {measure!r}; measures: {', '.join(MEASURES + (PROGRESS,))}")
   key = f"{measure}_rate"
